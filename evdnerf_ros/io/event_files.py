@@ -1,0 +1,136 @@
+"""One entry point to read and write events in every supported container, chosen by path.
+
+| path                     | container                                              |
+|--------------------------|--------------------------------------------------------|
+| `*.raw`                  | OpenEB RAW (EVT 3.0 or EVT 2.0, told by its header)     |
+| `*.npz`                  | numpy arrays t, x, y, p + width, height                 |
+| `*.h5`, `*.hdf5`         | HDF5 events/{t,x,y,p} (see h5events.py)                |
+| `*.bag`                  | ROS 1 bag, dvs_msgs/EventArray                          |
+| directory, `*.mcap`, `*.db3` | rosbag2 (MCAP or sqlite3), EventPacket or EventArray |
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..events.types import empty_triggers
+
+DEFAULT_TOPIC = "/event_camera/events"
+BAG_ENCODINGS = ("evt3", "mono", "array")
+RAW_ENCODINGS = ("evt3", "evt2")
+
+
+@dataclass
+class EventFile:
+    """Events read from any container, with the sensor geometry."""
+
+    events: np.ndarray
+    triggers: np.ndarray
+    width: int
+    height: int
+    kind: str  # container kind: raw, npz, h5, rosbag1, rosbag2
+    encoding: str | None = None
+    topic: str | None = None
+
+
+def container_kind(path) -> str:
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".raw":
+        return "raw"
+    if suffix == ".npz":
+        return "npz"
+    if suffix in (".h5", ".hdf5"):
+        return "h5"
+    if suffix == ".bag":
+        return "rosbag1"
+    if suffix in (".mcap", ".db3") or suffix == "" or path.is_dir():
+        return "rosbag2"
+    raise InputError(f"{path}: unknown event file type {suffix!r}; use .raw, .npz, .h5, .bag, "
+                     ".mcap, .db3 or a rosbag2 directory")
+
+
+def read_event_file(path, *, topic: str | None = None) -> EventFile:
+    path = Path(path)
+    kind = container_kind(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file or directory")
+    if kind != "rosbag2" and kind != "rosbag1" and topic is not None:
+        raise InputError(f"{path}: --topic applies only to bags, not to {kind} files")
+    if kind == "raw":
+        from .raw import read_raw
+
+        decoded, header = read_raw(path)
+        return EventFile(decoded.events, decoded.triggers, header.width, header.height, kind,
+                         header.encoding)
+    if kind == "npz":
+        from .npz import read_npz
+
+        return EventFile(*read_npz(path), kind)
+    if kind == "h5":
+        from .h5events import read_h5
+
+        return EventFile(*read_h5(path), kind)
+    from .rosbag2 import read_events
+
+    stream = read_events(path, topic=topic or DEFAULT_TOPIC)
+    triggers = stream.triggers if stream.triggers is not None else empty_triggers()
+    return EventFile(stream.events, triggers, stream.width, stream.height, kind,
+                     stream.encoding, stream.topic)
+
+
+def write_event_file(path, data: EventFile, *, encoding: str | None = None,
+                     topic: str | None = None, storage: str | None = None) -> str:
+    """Write `data` to `path` (container from the path); returns the encoding used."""
+    path = Path(path)
+    kind = container_kind(path)
+    if kind in ("raw", "rosbag1", "rosbag2") and encoding is None:
+        encoding = {"raw": "evt3", "rosbag1": "array", "rosbag2": "evt3"}[kind]
+    allowed = {"raw": RAW_ENCODINGS, "rosbag1": ("array",), "rosbag2": BAG_ENCODINGS}.get(kind)
+    if encoding is not None and allowed is None:
+        raise InputError(f"{path}: --encoding does not apply to {kind} files")
+    if allowed is not None and encoding not in allowed:
+        raise InputError(f"{path}: encoding {encoding!r} is not available for {kind} output; "
+                         f"choose one of {', '.join(allowed)}")
+    if topic is not None and kind not in ("rosbag1", "rosbag2"):
+        raise InputError(f"{path}: --topic applies only to bag outputs")
+    topic = topic or DEFAULT_TOPIC
+    triggers = data.triggers if len(data.triggers) else None
+    if kind == "raw":
+        from .raw import write_raw
+
+        write_raw(path, data.events, width=data.width, height=data.height, encoding=encoding,
+                  triggers=triggers)
+    elif kind == "npz":
+        from .npz import write_npz
+
+        write_npz(path, data.events, data.width, data.height, data.triggers)
+    elif kind == "h5":
+        from .h5events import write_h5
+
+        write_h5(path, data.events, data.width, data.height, data.triggers)
+    elif kind == "rosbag1":
+        from .rosbag1 import write_events_rosbag1
+
+        _refuse_dropped_triggers(path, triggers, encoding)
+        write_events_rosbag1(path, data.events, width=data.width, height=data.height, topic=topic)
+    else:
+        from .rosbag2 import BagWriter
+
+        _refuse_dropped_triggers(path, triggers, encoding)
+        if storage is None:
+            storage = "sqlite3" if path.suffix.lower() == ".db3" else "mcap"
+        with BagWriter(path, storage=storage) as bag:
+            bag.write_events(topic, data.events, width=data.width, height=data.height,
+                             encoding=encoding, triggers=triggers)
+    return encoding
+
+
+def _refuse_dropped_triggers(path, triggers, encoding) -> None:
+    if triggers is not None and encoding != "evt3":
+        raise InputError(f"{path}: the input has {len(triggers)} trigger events, which only the "
+                         "evt3 encoding carries; use --encoding evt3 (rosbag2) so none are lost")

@@ -1,0 +1,74 @@
+"""`evdnerf info`: what an event file or bag holds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+from ..units import format_ns
+from .event_files import DEFAULT_TOPIC, container_kind, read_event_file
+
+
+def describe(path, *, topic: str | None = None) -> dict:
+    """A JSON-ready summary: container, topics (bags), and the event stream's statistics."""
+    path = Path(path)
+    kind = container_kind(path)
+    info: dict = {"path": str(path), "container": kind}
+    if kind in ("rosbag1", "rosbag2"):
+        from .rosbag2 import bag_info
+
+        bag = bag_info(path)
+        info["storage"] = bag.storage
+        info["topics"] = [{"topic": t.topic, "type": t.msgtype, "messages": t.message_count}
+                          for t in bag.topics]
+        event_topics = [t.topic for t in bag.topics if t.msgtype in EVENT_TYPES]
+        if topic is None:
+            if not event_topics:
+                return info  # a bag without events: its topics are the whole story
+            topic = DEFAULT_TOPIC if DEFAULT_TOPIC in event_topics else event_topics[0]
+        elif topic not in {t.topic for t in bag.topics}:
+            raise InputError(f"{path}: no topic {topic!r}; topics: "
+                             f"{', '.join(t.topic for t in bag.topics) or 'none'}")
+    data = read_event_file(path, topic=topic)
+    ev = data.events
+    n = int(ev.size)
+    duration = int(ev["t"][-1] - ev["t"][0]) if n > 1 else 0
+    info["events"] = {
+        "topic": data.topic,
+        "encoding": data.encoding,
+        "count": n,
+        "positive": int((ev["p"] > 0).sum()),
+        "triggers": int(len(data.triggers)),
+        "width": data.width,
+        "height": data.height,
+        "t_first_ns": int(ev["t"][0]) if n else None,
+        "t_last_ns": int(ev["t"][-1]) if n else None,
+        "duration_ns": duration,
+        "mean_rate_ev_per_s": (n - 1) / (duration * 1e-9) if duration > 0 else None,
+    }
+    return info
+
+
+EVENT_TYPES = ("event_camera_msgs/msg/EventPacket", "dvs_msgs/msg/EventArray")
+
+
+def format_info(info: dict) -> str:
+    lines = [f"{info['path']}  ({info['container']}"
+             + (f", {info['storage']})" if "storage" in info else ")")]
+    for t in info.get("topics", []):
+        lines.append(f"  {t['topic']:<32} {t['type']:<40} {t['messages']:>8} msgs")
+    ev = info.get("events")
+    if ev:
+        head = f"  events{' on ' + ev['topic'] if ev['topic'] else ''}"
+        if ev["encoding"]:
+            head += f" ({ev['encoding']})"
+        lines.append(head + ":")
+        lines.append(f"    count       {ev['count']} ({ev['positive']} positive), "
+                     f"{ev['triggers']} trigger events")
+        lines.append(f"    resolution  {ev['width']}x{ev['height']}")
+        if ev["count"]:
+            lines.append(f"    time        {format_ns(ev['t_first_ns'])} .. "
+                         f"{format_ns(ev['t_last_ns'])} (duration {format_ns(ev['duration_ns'])})")
+        if ev["mean_rate_ev_per_s"]:
+            lines.append(f"    mean rate   {ev['mean_rate_ev_per_s'] / 1e6:.3f} Mev/s")
+    return "\n".join(lines)

@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# The README's two quickstart commands:
+#   bash quickstart.sh demo   # set up, then run the end-to-end demo on the virtual rig
+#   bash quickstart.sh test   # set up, then run the whole test suite
+# Set-up is idempotent: a .venv in this folder, `pip install -e .[test]` (torch pinned to
+# 2.13.0 in setup.py), and, when run as root, the Debian packages the toolkit needs.
+set -euo pipefail
+cd "$(dirname "$0")"
+
+job=${1:-}
+case "$job" in
+  demo|test) shift ;;
+  *) echo "usage: bash quickstart.sh demo|test [extra arguments]" >&2; exit 2 ;;
+esac
+
+PYTHON=${PYTHON:-python3}
+APT_PACKAGES="python3-venv python3-dev gcc"
+
+apt_install() {
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "quickstart: installing Debian packages: $*"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null
+  else
+    echo "quickstart: please install the Debian packages: $* (run this script as root to do it automatically)" >&2
+    return 1
+  fi
+}
+
+if [ ! -x .venv/bin/python ]; then
+  if ! "$PYTHON" -m venv .venv 2>/dev/null; then
+    rm -rf .venv
+    apt_install $APT_PACKAGES
+    "$PYTHON" -m venv .venv
+  fi
+fi
+
+# Reinstall only when the package definition changed since the last set-up.
+stamp=.venv/.quickstart-stamp
+want=$(cat setup.py setup.cfg package.xml | sha256sum | cut -d' ' -f1)
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  .venv/bin/python -m pip install -q --upgrade pip
+  .venv/bin/python -m pip install -q -e '.[test]'
+  echo "$want" > "$stamp"
+fi
+
+case "$job" in
+  demo) exec .venv/bin/python -m evdnerf_ros demo --overwrite "$@" ;;
+  test) exec .venv/bin/python -m pytest -q -n 2 -p no:cacheprovider "$@" ;;
+esac

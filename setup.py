@@ -1,0 +1,39 @@
+"""ament_python package `rig`: the EvDNeRF rig toolkit (python packages evdnerf_ros and rig)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "rig"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    description="EvDNeRF rig toolkit: event-camera capture, sync, training and event publishing",
+    packages=find_packages(include=["evdnerf_ros", "evdnerf_ros.*", "rig", "rig.*"]),
+    package_data={"evdnerf_ros.io": ["msg/*/msg/*.msg", "msg/*/*.msg", "msg/*.msg"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    python_requires=">=3.10",
+    # Versions: torch is pinned exactly because any looser spec pulls GBs of CUDA wheels;
+    # cyclonedds' private raw-CDR writer is used later, so it is pinned when it arrives.
+    install_requires=[
+        "numpy>=1.24",
+        "pyyaml>=6",
+        "h5py>=3.8",
+        "matplotlib>=3.7",
+        "tqdm>=4.60",
+        "rosbags>=0.11,<0.12",
+        "torch==2.13.0",
+    ],
+    extras_require={
+        "test": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "mcap>=1.1",
+                 "mcap-ros2-support>=0.5", "expelliarmus==1.1.12"],
+    },
+    entry_points={"console_scripts": ["evdnerf = evdnerf_ros.cli:main"]},
+    zip_safe=True,
+)
