@@ -57,8 +57,7 @@ def _run(scene: RotatingBar, out: Path, log) -> dict:
     K = np.array([[fx, 0, (scene.width - 1) / 2], [0, fx, (scene.height - 1) / 2], [0, 0, 1]])
     with BagWriter(bag_path) as bag:
         bag.write("/event_camera/camera_info", "sensor_msgs/msg/CameraInfo",
-                  camera_info(scene.width, scene.height, K, np.zeros(5), "event_camera",
-                              int(events["t"][0])), int(events["t"][0]))
+                  camera_info(scene.width, scene.height, K, stamp_ns=int(events["t"][0])), int(events["t"][0]))
         bag.write_events(DEFAULT_TOPIC, events, width=scene.width, height=scene.height,
                          encoding="evt3", triggers=triggers)
     recorded = read_event_file(bag_path)
