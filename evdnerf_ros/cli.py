@@ -18,11 +18,14 @@ TOPIC_HELP = "event topic inside a bag (default /event_camera/events)"
 
 
 def _cmd_convert_events(args) -> int:
-    from .io.event_files import read_event_file, write_event_file
+    from .io.event_files import container_kind, read_event_file, write_event_file
 
     data = read_event_file(args.input, topic=args.topic)
-    encoding = write_event_file(args.output, data, encoding=args.encoding,
-                                topic=args.out_topic or args.topic, storage=args.storage)
+    out_topic = args.out_topic
+    if out_topic is None and container_kind(args.output) in ("rosbag1", "rosbag2"):
+        out_topic = args.topic  # keep the input's topic name when writing a bag
+    encoding = write_event_file(args.output, data, encoding=args.encoding, topic=out_topic,
+                                storage=args.storage)
     print(f"{args.output}: {len(data.events)} events, {len(data.triggers)} triggers, "
           f"{data.width}x{data.height}" + (f", encoding {encoding}" if encoding else ""))
     return 0
@@ -56,7 +59,8 @@ def _cmd_render_events(args) -> int:
         raise EvdnerfError(f"--window must be positive, got {args.window}")
     t0 = start if args.absolute else int(ev["t"][0]) + start
     sl = time_slice(ev, t0, t0 + window)
-    save_png(args.output, event_image(sl, data.width, data.height, saturation=args.saturation))
+    save_png(args.output, event_image(sl, data.width, data.height, saturation=args.saturation),
+             upscale=args.upscale)
     print(f"{args.output}: {len(sl)} events in [{format_ns(t0)}, {format_ns(t0 + window)})")
     if args.rate:
         bin_ns = parse_duration_ns(args.rate_bin, name="--rate-bin")
@@ -129,6 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--absolute", action="store_true", help="--start is an absolute time")
     p.add_argument("--saturation", type=int, default=1,
                    help="net event count drawn at full colour (default %(default)s)")
+    p.add_argument("--upscale", type=int, default=1,
+                   help="repeat each pixel this many times for viewing (default %(default)s)")
     p.add_argument("--rate", action="store_true",
                    help="also plot the event rate of the whole recording (<output>_rate.png)")
     p.add_argument("--rate-bin", default="1ms", help="rate histogram bin (default %(default)s)")

@@ -38,13 +38,13 @@ def run_demo(out_dir: Path, *, overwrite: bool = False, log=print) -> dict:
     scene = RotatingBar()
     with atomic_output(out_dir, overwrite=overwrite, directory=True) as tmp:
         tmp.mkdir()
-        summary = _run(scene, tmp, log)
+        summary = _run(scene, tmp, out_dir, log)
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
     log(f"demo finished: outputs in {out_dir}/ (summary.json, event_image.png, event_rate.png)")
     return summary
 
 
-def _run(scene: RotatingBar, out: Path, log) -> dict:
+def _run(scene: RotatingBar, out: Path, final_dir: Path, log) -> dict:
     from .io.messages import camera_info
     from .io.rosbag2 import BagWriter
 
@@ -62,7 +62,7 @@ def _run(scene: RotatingBar, out: Path, log) -> dict:
                          encoding="evt3", triggers=triggers)
     recorded = read_event_file(bag_path)
     _check_same(bag_path, recorded, events, triggers, with_triggers=True)
-    log(format_info(describe(bag_path)))
+    log(format_info(describe(bag_path)).replace(str(out), str(final_dir)))
 
     summary = {"scene": "rotating-bar", "events": int(len(events)),
                "triggers": int(len(triggers)), "round_trips": {}}
@@ -82,9 +82,10 @@ def _run(scene: RotatingBar, out: Path, log) -> dict:
 
     window_start = scene.start_ns + 250_000_000
     window = time_slice(events, window_start, window_start + 20_000_000)
-    save_png(out / "event_image.png", event_image(window, scene.width, scene.height))
-    plot_event_rate(out / "event_rate.png", {"rotating bar": event_rate(events["t"], 10_000_000)},
-                    title="demo scene: event rate (10 ms bins)")
+    save_png(out / "event_image.png", event_image(window, scene.width, scene.height), upscale=4)
+    plot_event_rate(out / "event_rate.png",
+                    {"rotating bar": event_rate(events["t"], 10_000_000, t_start=0)},
+                    title="demo scene: event rate (10 ms bins; motion starts at 0.2 s)")
     return summary
 
 

@@ -38,10 +38,14 @@ def signed_to_rgb(image: np.ndarray, vmax: float | None = None) -> np.ndarray:
     return np.rint(rgb).astype(np.uint8)
 
 
-def save_png(path, rgb: np.ndarray, *, overwrite: bool = True) -> Path:
-    """Write an (H, W, 3) uint8 image atomically."""
+def save_png(path, rgb: np.ndarray, *, overwrite: bool = True, upscale: int = 1) -> Path:
+    """Write an (H, W, 3) uint8 image atomically; `upscale` repeats pixels for viewing."""
     import matplotlib.image
 
+    if upscale < 1:
+        raise InputError(f"upscale must be >= 1, got {upscale}")
+    if upscale > 1:
+        rgb = np.repeat(np.repeat(rgb, upscale, axis=0), upscale, axis=1)
     with atomic_output(path, overwrite=overwrite) as tmp:
         matplotlib.image.imsave(tmp, rgb, format="png")
     return Path(path)

@@ -17,18 +17,18 @@ def describe(path, *, topic: str | None = None) -> dict:
     if kind in ("rosbag1", "rosbag2"):
         from .rosbag2 import bag_info
 
-        bag = bag_info(path)
+        bag = bag_info(path, decode_events=False)  # events are decoded once, below
         info["storage"] = bag.storage
-        info["topics"] = [{"topic": t.topic, "type": t.msgtype, "messages": t.message_count}
-                          for t in bag.topics]
-        event_topics = [t.topic for t in bag.topics if t.msgtype in EVENT_TYPES]
+        info["topics"] = [{"topic": t.name, "type": t.msgtype, "messages": t.message_count}
+                          for t in bag.topics.values()]
+        event_topics = [t.name for t in bag.topics.values() if t.msgtype in EVENT_TYPES]
         if topic is None:
             if not event_topics:
                 return info  # a bag without events: its topics are the whole story
             topic = DEFAULT_TOPIC if DEFAULT_TOPIC in event_topics else event_topics[0]
-        elif topic not in {t.topic for t in bag.topics}:
+        elif topic not in bag.topics:
             raise InputError(f"{path}: no topic {topic!r}; topics: "
-                             f"{', '.join(t.topic for t in bag.topics) or 'none'}")
+                             f"{', '.join(bag.topics) or 'none'}")
     data = read_event_file(path, topic=topic)
     ev = data.events
     n = int(ev.size)
