@@ -143,3 +143,17 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert (out / "event_image.png").exists() and (out / "event_rate.png").exists()
     assert main(["demo", "-o", str(out)]) == 2          # refuses to overwrite
     assert main(["demo", "-o", str(out), "--overwrite"]) == 0
+
+
+def test_video2events_cli(tmp_path, capsys):
+    # A log-linear ramp at every pixel: exp(a t) crosses C = 0.2 exactly every 0.2 / a s.
+    t = np.arange(11, dtype=np.int64) * 10_000_000
+    a = 20.0  # per second -> one crossing every 10 ms
+    frames = np.exp(a * t[:, None, None] * 1e-9) * np.ones((1, 3, 4)) - 1e-3
+    np.savez(tmp_path / "frames.npz", frames=frames, t=t)
+    assert main(["video2events", str(tmp_path / "frames.npz"), str(tmp_path / "ev.npz")]) == 0
+    ev = read_event_file(tmp_path / "ev.npz").events
+    assert len(ev) == 10 * 12 and np.all(ev["p"] == 1)
+    assert np.array_equal(np.unique(ev["t"]), t[1:])
+    assert main(["video2events", str(tmp_path / "frames.npz"), str(tmp_path / "ev.npz")]) == 2
+    assert "already exists" in capsys.readouterr().err

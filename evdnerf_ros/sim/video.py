@@ -1,0 +1,145 @@
+"""video2events: a user's own high-speed video (frames + int64-ns times) to events.
+
+Input file FRAMES.npz holds ``frames`` (N, H, W) and ``t`` (N,) int64 nanoseconds,
+strictly increasing.
+
+* Float frames are **linear intensity** (white = 1.0, any positive HDR value allowed);
+  NaN, inf or negative values are refused (the message names the file and frame index).
+* 8-bit frames (uint8, 0..255) are display-encoded, not linear; feeding them to a log
+  would put the event thresholds in the wrong place, so they are refused unless
+  ``gamma_8bit=True`` (CLI ``--gamma-8bit``). Then they are linearised with a pure power
+  law ``I = (v / 255) ** 2.2``: the usual approximation of the sRGB transfer curve (the
+  exact sRGB curve has a short linear toe below v = 10; the two differ by under 1 % of
+  white). Black (v = 0) maps to I = 0, which the log's eps handles.
+* Other integer types are refused: store linear float intensity.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, OutputExistsError
+from .generator import EventGenerator
+from .logmap import LOG_EPS, check_intensity
+
+#: Exponent of the 8-bit linearisation (sRGB-style display gamma).
+GAMMA_8BIT = 2.2
+
+
+def linearize_8bit(frames: np.ndarray) -> np.ndarray:
+    """uint8 display values -> linear intensity ``(v / 255) ** 2.2`` (float32, white = 1.0)."""
+    lut = ((np.arange(256, dtype=np.float64) / 255.0) ** GAMMA_8BIT).astype(np.float32)
+    return lut[frames]
+
+
+def check_times(t, n_frames: int, *, source: str) -> np.ndarray:
+    t = np.asarray(t)
+    if t.dtype.kind not in "iu":
+        raise InputError(f"{source}: t has dtype {t.dtype}; store frame times as int64 "
+                         "nanoseconds, not floats (e.g. np.round(seconds * 1e9).astype(np.int64))")
+    if t.shape != (n_frames,):
+        raise InputError(f"{source}: t has shape {t.shape}, expected ({n_frames},) - one time "
+                         "per frame")
+    t = t.astype(np.int64)
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise InputError(f"{source}: frame {i} time {t[i]} ns is not after frame {i - 1}'s "
+                         f"{t[i - 1]} ns; frame times must increase strictly")
+    return t
+
+
+def check_frames(frames, t, *, source: str = "frames", gamma_8bit: bool = False):
+    """Validate (frames, t); return (float frames, int64 t). Errors name `source` and the frame."""
+    frames = np.asarray(frames)
+    if frames.ndim != 3:
+        raise InputError(f"{source}: frames have shape {frames.shape}; expected (N, H, W) grey "
+                         "images")
+    n, h, w = frames.shape
+    if n == 0 or h == 0 or w == 0:
+        raise InputError(f"{source}: frames have shape {frames.shape}; need at least one frame "
+                         "of at least 1x1 pixels")
+    t = check_times(t, n, source=source)
+    kind = frames.dtype.kind
+    if kind in "iub":
+        if frames.dtype != np.uint8:
+            raise InputError(f"{source}: frames have dtype {frames.dtype}; store linear float "
+                             "intensity (white = 1.0), or uint8 display values with --gamma-8bit")
+        if not gamma_8bit:
+            raise InputError(f"{source}: frames are 8-bit (uint8) display values, not linear "
+                             "intensity; pass --gamma-8bit to linearise them with gamma 2.2, or "
+                             "store linear float frames")
+        return linearize_8bit(frames), t
+    if kind != "f":
+        raise InputError(f"{source}: frames have dtype {frames.dtype}; expected float linear "
+                         "intensity")
+    if gamma_8bit:
+        raise InputError(f"{source}: --gamma-8bit applies only to uint8 frames; these are "
+                         f"{frames.dtype} (already linear)")
+    for i in range(n):
+        check_intensity(frames[i], where=f"{source}: frame {i} at t={t[i]} ns")
+    return frames, t
+
+
+def load_frames_npz(path, *, gamma_8bit: bool = False):
+    """Read FRAMES.npz -> (frames (N, H, W) float linear intensity, t (N,) int64 ns)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        raise InputError(f"{path}: not a readable .npz file ({exc})") from exc
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise InputError(f"{path}: is a single .npy array, not an .npz with arrays frames and t")
+    with data:
+        missing = [k for k in ("frames", "t") if k not in data.files]
+        if missing:
+            raise InputError(f"{path}: missing arrays {missing}; FRAMES.npz holds frames (N, H, W) "
+                             "linear intensity and t (N,) int64 ns (has: "
+                             f"{', '.join(data.files) or 'nothing'})")
+        try:
+            frames, t = data["frames"], data["t"]
+        except ValueError as exc:  # object arrays need pickle, which we refuse
+            raise InputError(f"{path}: cannot read arrays ({exc})") from exc
+    return check_frames(frames, t, source=str(path), gamma_8bit=gamma_8bit)
+
+
+def video_to_events(frames, t, **generator_options) -> np.ndarray:
+    """Events of a video (N, H, W) linear intensity at times t (N,) int64 ns.
+
+    `generator_options` are :class:`EventGenerator`'s keyword arguments (c_pos, c_neg, eps,
+    threshold_sigma, interval_sigma, refractory_ns, shot_noise_rate_hz, leak_rate_hz, seed).
+    """
+    frames, t = check_frames(frames, t)
+    _, h, w = frames.shape
+    return EventGenerator(w, h, **generator_options).generate(frames, t)
+
+
+def run_video2events(frames_path, out_path, *, c_pos: float = 0.2, c_neg: float = 0.2,
+                     eps: float = LOG_EPS, sigma: float = 0.0, refractory_ns: int = 0,
+                     seed: int = 0, gamma_8bit: bool = False, interval_sigma: float = 0.0) -> int:
+    """The whole ``evdnerf video2events FRAMES.npz OUT`` job; returns the number of events.
+
+    `sigma` is the per-pixel threshold mismatch (v2e's sigma, fixed from `seed`);
+    `interval_sigma` is ESIM's per-interval threshold noise. OUT's container follows its
+    suffix (see :mod:`evdnerf_ros.io.event_files`); an existing OUT is refused (checked
+    before any work) and nothing is half-written on failure (the writers are atomic).
+    """
+    from ..events.types import empty_triggers
+    from ..io.event_files import EventFile, container_kind, write_event_file
+
+    out_path = Path(out_path)
+    kind = container_kind(out_path)           # unknown suffix: fail before any work
+    if out_path.exists():
+        raise OutputExistsError(out_path)
+    frames, t = load_frames_npz(frames_path, gamma_8bit=gamma_8bit)
+    _, h, w = frames.shape
+    gen = EventGenerator(w, h, c_pos=c_pos, c_neg=c_neg, eps=eps, threshold_sigma=sigma,
+                         interval_sigma=interval_sigma, refractory_ns=refractory_ns, seed=seed)
+    events = gen.generate(frames, t)
+    write_event_file(out_path, EventFile(events, empty_triggers(), w, h, kind))
+    return int(events.size)

@@ -1,0 +1,180 @@
+"""Time sampling of analytic renderers: O(dt^2) fixed-rate convergence, adaptive tolerance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from evdnerf_ros.errors import InputError
+from evdnerf_ros.sim import LOG_EPS, EventGenerator, simulate_renderer
+
+C = 0.2
+SEC = 1_000_000_000
+
+
+class Parabola:
+    """Pixel x: L(s) = L0 + b_x * s^2 (s in seconds), rising; exact crossing times known."""
+
+    def __init__(self, n=48, seed=0):
+        rng = np.random.default_rng(seed)
+        self.b = np.sort(rng.uniform(2.0, 4.0, n))
+        self.L0 = -1.0
+        self.calls = []
+
+    def log(self, t_ns):
+        s = np.asarray(t_ns, np.float64) * 1e-9
+        return self.L0 + self.b * s**2
+
+    def __call__(self, t_ns):
+        self.calls.append(int(t_ns))
+        return (np.exp(self.log(t_ns)) - LOG_EPS)[None, :]
+
+    def exact_times(self, x, n):
+        k = np.arange(1, n + 1)
+        return np.sqrt(k * C / self.b[x]) * 1e9
+
+    def timing_errors(self, ev):
+        errs = []
+        for x in range(self.b.size):
+            mine = ev["t"][ev["x"] == x]
+            n = int(np.floor(self.b[x] / C))
+            assert mine.size == n          # monotone signal: counts are exact at any rate
+            errs.append(np.abs(mine - self.exact_times(x, n)))
+        return np.concatenate(errs)
+
+
+class SigmoidEdge:
+    """Pixel x: L = L_lo + A * sigmoid((t - tc_x) / tau), a fast edge sweeping the row."""
+
+    def __init__(self, n=40, tau_ns=2_000_000, span=100_000_000, amp=2.1):
+        self.tc = np.linspace(0.1, 0.9, n) * span
+        self.tau, self.amp, self.lo = tau_ns, amp, -2.0
+
+    def log(self, t_ns):
+        z = (np.asarray(t_ns, np.float64)[..., None] - self.tc) / self.tau
+        return self.lo + self.amp / (1.0 + np.exp(-z))
+
+    def __call__(self, t_ns):
+        return (np.exp(self.log(t_ns)) - LOG_EPS)[None, :]
+
+
+def test_fixed_rate_error_falls_as_dt_squared():
+    scene = Parabola()
+    rates = np.array([16.0, 32.0, 64.0, 128.0])
+    worst = []
+    for r in rates:
+        gen = EventGenerator(scene.b.size, 1)
+        ev, stats = simulate_renderer(scene, 0, SEC, gen, mode="fixed", rate_hz=r)
+        assert stats.renders == int(r) + 1
+        worst.append(scene.timing_errors(ev).max())
+    slope = np.polyfit(np.log(1.0 / rates), np.log(worst), 1)[0]
+    assert 1.8 < slope < 2.2, (slope, worst)
+
+
+def _log_errors(scene, ev, lo):
+    """|L_true(t_event) - level crossed| for the rising (ON) events of each pixel."""
+    out = []
+    for x in range(scene.tc.size if hasattr(scene, "tc") else scene.b.size):
+        on = ev["t"][(ev["x"] == x) & (ev["p"] == 1)]
+        levels = lo[x] + C * np.arange(1, on.size + 1)
+        out.append(np.abs(scene.log(on)[:, x] - levels) if on.size else np.zeros(0))
+    return np.concatenate(out)
+
+
+@pytest.mark.parametrize("tol", [0.1, 0.02])
+def test_adaptive_sampler_meets_its_tolerance_on_parabola(tol):
+    scene = Parabola()
+    gen = EventGenerator(scene.b.size, 1)
+    ev, stats = simulate_renderer(scene, 0, SEC, gen, tolerance_c=tol, max_step_ns=SEC // 4)
+    scene.timing_errors(ev)            # exact counts
+    err = np.array([np.abs(scene.log(e["t"])[e["x"]] - (scene.L0 + C * k))
+                    for e, k in zip(ev, _crossing_index(ev))])
+    assert err.max() <= tol * C
+    assert stats.max_deviation_c < tol
+    assert len(set(scene.calls)) == len(scene.calls) == stats.renders  # memoised
+
+
+def _crossing_index(ev):
+    """1-based index of each event among its pixel's events (events of one pixel in time order)."""
+    idx = np.empty(ev.size, int)
+    seen = {}
+    for i, x in enumerate(ev["x"]):
+        seen[x] = seen.get(x, 0) + 1
+        idx[i] = seen[x]
+    return idx
+
+
+@pytest.mark.parametrize("tol", [0.1, 0.02])
+def test_adaptive_sampler_meets_its_tolerance_on_fast_sigmoid_edge(tol):
+    scene = SigmoidEdge()
+    gen = EventGenerator(scene.tc.size, 1)
+    ev, stats = simulate_renderer(scene, 0, 100_000_000, gen, tolerance_c=tol)
+    n_on = int(np.floor(scene.amp / C))
+    assert np.bincount(ev["x"][ev["p"] == 1], minlength=scene.tc.size).tolist() == \
+        [n_on] * scene.tc.size
+    lo = scene.log(0)          # each pixel's starting (reference) level
+    assert _log_errors(scene, ev, lo).max() <= tol * C
+    assert stats.max_deviation_c < tol
+
+
+def test_adaptive_on_log_linear_input_uses_the_largest_steps_and_is_exact():
+    slopes = np.array([3.0, -5.0, 0.7])
+    render = lambda t: (np.exp(slopes * t * 1e-9) - LOG_EPS)[None, :]  # noqa: E731
+    gen = EventGenerator(3, 1)
+    ev, stats = simulate_renderer(render, 0, SEC, gen, max_step_ns=SEC // 8)
+    assert stats.renders == 1 + 8 * 2 and stats.at_min_step == 0
+    for x, a in enumerate(slopes):
+        t = ev["t"][ev["x"] == x]
+        k = np.arange(1, t.size + 1)
+        assert t.size == int(abs(a) / C)
+        assert np.max(np.abs(t - k * C / abs(a) * 1e9)) <= 1
+
+
+def test_min_step_is_respected_at_a_discontinuity():
+    render = lambda t: np.full((2, 2), 0.1 if t < 400_000_123 else 5.0)  # noqa: E731
+    gen = EventGenerator(2, 2)
+    ev, stats = simulate_renderer(render, 0, SEC, gen, min_step_ns=10_000)
+    assert stats.at_min_step >= 1
+    assert stats.smallest_step_ns >= 10_000
+    assert stats.renders < 200
+    assert ev.size == 4 * int(np.log(5.001 / 0.101) / C)
+    assert np.all(np.abs(ev["t"] - 400_000_123) <= 20_000)
+
+
+def test_fixed_rate_chunks_continue_a_stream_bit_exactly():
+    scene = Parabola(n=8)
+    g1 = EventGenerator(8, 1)
+    whole, _ = simulate_renderer(scene, 0, SEC, g1, mode="fixed", rate_hz=100)
+    g2 = EventGenerator(8, 1)
+    a, _ = simulate_renderer(scene, 0, SEC // 2, g2, mode="fixed", rate_hz=100)
+    b, s2 = simulate_renderer(scene, SEC // 2, SEC, g2, mode="fixed", rate_hz=100)
+    assert s2.renders == 50                # the start frame is reused, not re-rendered
+    assert np.concatenate([a, b]).tobytes() == whole.tobytes()
+
+
+def test_bad_renderers_and_arguments():
+    gen = EventGenerator(3, 2)
+
+    def nan_at_7ms(t):
+        img = np.ones((2, 3))
+        if t >= 7_000_000:
+            img[1, 1] = np.nan
+        return img
+
+    with pytest.raises(InputError, match=r"render at t=\d+ ns.*not finite"):
+        simulate_renderer(nan_at_7ms, 0, 20_000_000, gen, mode="fixed", rate_hz=1000)
+    with pytest.raises(InputError, match="shape"):
+        simulate_renderer(lambda t: np.ones((3, 2)), 0, 10, EventGenerator(3, 2))
+    with pytest.raises(InputError, match="mode"):
+        simulate_renderer(lambda t: np.ones((2, 3)), 0, 10, EventGenerator(3, 2), mode="x")
+    with pytest.raises(InputError, match="rate_hz"):
+        simulate_renderer(lambda t: np.ones((2, 3)), 0, 10, EventGenerator(3, 2), mode="fixed")
+    with pytest.raises(InputError, match="t_end"):
+        simulate_renderer(lambda t: np.ones((2, 3)), 10, 10, EventGenerator(3, 2))
+    with pytest.raises(InputError, match="min_step_ns"):
+        simulate_renderer(lambda t: np.ones((2, 3)), 0, 10, EventGenerator(3, 2),
+                          min_step_ns=100, max_step_ns=10)
+    g = EventGenerator(3, 2)
+    g.reset(np.ones((2, 3)), 5)
+    with pytest.raises(InputError, match="not at t_start"):
+        simulate_renderer(lambda t: np.ones((2, 3)), 0, 10, g)
