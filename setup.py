@@ -17,6 +17,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/config/scenes", glob("config/scenes/*.yaml")),
     ],
     python_requires=">=3.10",
     # Versions: torch is pinned exactly because any looser spec pulls GBs of CUDA wheels;
@@ -28,6 +29,7 @@ setup(
         "matplotlib>=3.7",
         "tqdm>=4.60",
         "rosbags>=0.11,<0.12",
+        "trimesh>=4",  # OBJ/PLY/GLB mesh loading for scene objects
         "torch==2.13.0",
     ],
     extras_require={
