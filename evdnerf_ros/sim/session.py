@@ -1,0 +1,410 @@
+"""`evdnerf simulate`: a capture session of a synthetic scene, in the layout of a real rig.
+
+For each camera of the scene's ring (training views, then validation views offset by
+`validation_offset_deg`) this renders the scene, runs the exact event generator with
+adaptive time sampling, and records what the real rig would record, in that view's own
+clock:
+
+```
+<session>/session.yaml             scene, camera, thresholds, per-view pose / angle / split,
+                                   and the injected clock offsets as ground truth
+<session>/view_00/ ...             one rosbag2 (MCAP) per view:
+    /event_camera/events             event_camera_msgs/msg/EventPacket (evt3; EXT_TRIGGER
+                                     edges at servo start for servo scenes)
+    /event_camera/camera_info        sensor_msgs/msg/CameraInfo
+    /rig/camera_pose                 geometry_msgs/msg/PoseStamped (static camera)
+    /rig/servo/joint_states          sensor_msgs/msg/JointState (servo scenes, 50 Hz)
+    /rig/servo/trigger               sensor_msgs/msg/TimeReference START / DONE (servo scenes)
+<session>/frames/<view>.npz        motion-blurred grey frames (the DNeRF baseline's input)
+<session>/ground_truth/<view>.npz  intensity and depth at chosen times (scene clock)
+```
+
+Clocks: the scene clock starts at the scene's `time.start_s`. View v's camera clock reads
+`scene time + clock_offset_ns[v]` (drawn from the seed, recorded under `ground_truth` in
+session.yaml) and ticks whole microseconds, as a real sensor does; the servo's device
+clock (`micros()`) reads `scene time + device_offset_ns[v]`. Sync has to find these offsets.
+
+Only what the data needs is computed: before the first and after the last moment anything
+moves, the image is static, so one render stands for the whole span (no events there
+without noise); inside the motion span the adaptive sampler renders only as often as the
+log image departs from linear by `tolerance_c` thresholds, and the generator touches only
+pixels whose intensity changed.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .. import __version__
+from ..atomic import atomic_output
+from ..errors import InputError
+from ..events.types import empty_triggers, make_triggers, sort_events
+from .camera import PinholeCamera
+from .generator import EventGenerator
+from .logmap import LOG_EPS
+from .render import SceneRenderer
+from .sampling import simulate_renderer
+from .scene import Scene, load_scene
+
+EVENT_TOPIC = "/event_camera/events"
+CAMERA_INFO_TOPIC = "/event_camera/camera_info"
+POSE_TOPIC = "/rig/camera_pose"
+JOINT_TOPIC = "/rig/servo/joint_states"
+TRIGGER_TOPIC = "/rig/servo/trigger"
+SESSION_FORMAT = "evdnerf-rig-session"
+SESSION_FORMAT_VERSION = 1
+JOINT_STATE_PERIOD_NS = 20_000_000    # servo frame: 50 Hz
+TRIGGER_PULSE_NS = 1_000_000          # trigger-out pulse width at motion start
+
+
+@dataclass(frozen=True)
+class SimulationOptions:
+    """Every knob of `evdnerf simulate` (the CLI flags map one to one)."""
+
+    views: int | None = None              # training views (None: the scene's ring)
+    val_views: int | None = None          # validation views (None: the scene's ring; 0: none)
+    resolution: tuple[int, int] | None = None  # (width, height); None: the scene's intrinsics
+    seed: int = 0
+    c_pos: float = 0.2
+    c_neg: float = 0.2
+    eps: float = LOG_EPS
+    threshold_sigma: float = 0.0          # per-pixel threshold mismatch (fixed per view seed)
+    refractory_ns: int = 0
+    tolerance_c: float = 0.1              # adaptive sampling: midpoint deviation, units of C
+    min_step_ns: int = 1_000_000         # finest step: edges in rendered images are steps,
+                                          # so the linearity check alone would bisect to it
+    max_step_ns: int = 10_000_000
+    supersample: int = 2
+    frame_rate_hz: float = 30.0           # blurred grey frames; 0 disables them
+    blur_samples: int = 8                 # renders averaged per exposure
+    gt_times: int = 5                     # ground-truth intensity/depth renders per view
+    max_clock_offset_s: float = 5.0       # injected camera clock offsets in [0, this)
+    jobs: int = 0                         # worker processes; 0: one per CPU (at most views)
+
+    def check(self) -> None:
+        for name in ("c_pos", "c_neg", "eps", "tolerance_c"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise InputError(f"simulate: {name.replace('_', '-')} must be finite and > 0, got {v}")
+        for name in ("threshold_sigma", "frame_rate_hz", "max_clock_offset_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise InputError(f"simulate: {name.replace('_', '-')} must be finite and >= 0, got {v}")
+        for name in ("supersample", "blur_samples", "min_step_ns", "max_step_ns"):
+            if getattr(self, name) < 1:
+                raise InputError(f"simulate: {name.replace('_', '-')} must be >= 1")
+        for name in ("views", "val_views", "gt_times", "refractory_ns", "jobs"):
+            v = getattr(self, name)
+            if v is not None and v < 0:
+                raise InputError(f"simulate: {name.replace('_', '-')} must be >= 0")
+        if self.views == 0:
+            raise InputError("simulate: --views must be >= 1")
+        if self.resolution is not None and min(self.resolution) < 1:
+            raise InputError(f"simulate: resolution must be positive, got {self.resolution}")
+
+
+@dataclass
+class ViewTask:
+    name: str
+    index: int
+    split: str
+    azimuth_deg: float
+    T_world_cam: np.ndarray
+    clock_offset_ns: int
+    device_offset_ns: int
+    seed: int
+
+
+@dataclass
+class ViewResult:
+    name: str
+    events: int
+    triggers: int
+    renders: int
+    seconds: float
+    stats: dict = field(default_factory=dict)
+
+
+def simulate_session(scene_ref, out_dir, options: SimulationOptions = SimulationOptions(), *,
+                     overwrite: bool = False, log=print) -> dict:
+    """Write a whole session for `scene_ref` (preset name or YAML path); returns session.yaml."""
+    options.check()
+    scene = load_scene(scene_ref)
+    camera = scene.camera
+    if options.resolution is not None:
+        camera = camera.resized(*options.resolution)
+    tasks = _view_tasks(scene, options)
+    wall0 = time.perf_counter()
+    with atomic_output(out_dir, overwrite=overwrite, directory=True) as tmp:
+        (tmp / "frames").mkdir(parents=True)
+        (tmp / "ground_truth").mkdir()
+        results = _run_views(scene, camera, tasks, options, tmp, log)
+        session = _session_yaml(scene, scene_ref, camera, options, tasks, results)
+        (tmp / "session.yaml").write_text(yaml.safe_dump(session, sort_keys=False))
+    total = time.perf_counter() - wall0
+    log(f"simulate: {len(tasks)} views, {sum(r.events for r in results)} events in "
+        f"{total:.1f} s -> {out_dir}")
+    return session
+
+
+def _view_tasks(scene: Scene, options: SimulationOptions) -> list[ViewTask]:
+    rng = np.random.default_rng(options.seed)
+    max_offset = int(round(options.max_clock_offset_s * 1e9))
+    ring = scene.cameras.ring
+    tasks = []
+    for split, prefix, n in (("train", "view", options.views), ("val", "val", options.val_views)):
+        if split == "val" and n == 0:
+            continue
+        poses = ring.poses(split, n)
+        azimuths = ring.azimuths_deg(split, n)
+        for k, (T, az) in enumerate(zip(poses, azimuths)):
+            tasks.append(ViewTask(
+                name=f"{prefix}_{k:02d}", index=len(tasks), split=split, azimuth_deg=float(az),
+                T_world_cam=np.asarray(T, np.float64),
+                clock_offset_ns=int(rng.integers(0, max_offset)) if max_offset > 0 else 0,
+                device_offset_ns=int(rng.integers(1_000_000_000, 60_000_000_000)),
+                seed=int(rng.integers(0, 2 ** 31))))
+    scene.check_cameras([t.T_world_cam for t in tasks], [t.name for t in tasks])
+    return tasks
+
+
+def _run_views(scene, camera, tasks, options, out: Path, log) -> list[ViewResult]:
+    jobs = options.jobs or (os.cpu_count() or 1)
+    jobs = max(1, min(jobs, len(tasks)))
+    bar = _progress(len(tasks))
+    results = []
+    try:
+        if jobs == 1:
+            for task in tasks:
+                results.append(_simulate_view(scene, camera, task, options, out))
+                _report(bar, log, results[-1])
+        else:
+            with ProcessPoolExecutor(max_workers=jobs) as pool:
+                futures = [pool.submit(_simulate_view, scene, camera, t, options, out) for t in tasks]
+                for fut in futures:
+                    results.append(fut.result())
+                    _report(bar, log, results[-1])
+    finally:
+        if bar is not None:
+            bar.close()
+    return results
+
+
+def _progress(n):
+    import sys
+
+    if not sys.stderr.isatty():
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=n, unit="view", desc="simulate")
+
+
+def _report(bar, log, r: ViewResult) -> None:
+    line = (f"  {r.name}: {r.events} events, {r.renders} renders, {r.seconds:.2f} s")
+    if bar is None:
+        log(line)
+    else:
+        bar.set_postfix_str(line.strip())
+        bar.update(1)
+
+
+def _servo_objects(scene: Scene):
+    return [o for o in scene.all_objects() if o.servo is not None]
+
+
+def _simulate_view(scene: Scene, camera: PinholeCamera, task: ViewTask,
+                   options: SimulationOptions, out: Path) -> ViewResult:
+    """One view: events, bag, blurred frames and ground truth (runs in a worker process)."""
+    from ..events.codecs import quantize_to_us
+    from ..io.messages import camera_info, joint_state, pose_stamped, time_reference
+    from ..io.rosbag2 import BagWriter
+
+    t0 = time.perf_counter()
+    renderer = SceneRenderer(scene, camera, options.supersample)
+    T = task.T_world_cam
+    start, end = scene.start_ns, scene.end_ns
+    span = scene.motion_span_ns()
+    m0, m1 = (start, start) if span is None else (max(start, span[0]), min(end, span[1]))
+    gen = EventGenerator(camera.width, camera.height, c_pos=options.c_pos, c_neg=options.c_neg,
+                         eps=options.eps, threshold_sigma=options.threshold_sigma,
+                         refractory_ns=options.refractory_ns, seed=task.seed)
+    first = renderer(T, start)
+    gen.reset(first, start)
+    chunks, renders, stats = [], 1, {}
+    if m1 > m0:
+        if m0 > start:                       # static lead-in: one render stands for it
+            chunks.append(gen.step_log(gen.last_log(), m0))
+        ev, st = simulate_renderer(lambda t: renderer(T, t), m0, m1, gen, mode="adaptive",
+                                   tolerance_c=options.tolerance_c,
+                                   min_step_ns=options.min_step_ns,
+                                   max_step_ns=options.max_step_ns)
+        chunks.append(ev)
+        renders += st.renders
+        stats = {k: v for k, v in asdict(st).items() if k not in ("mode",)}
+    if end > gen.t_ns:                       # static tail (or a static scene)
+        chunks.append(gen.step_log(gen.last_log(), end))
+    events = np.concatenate(chunks)
+    stats["static_spans_ns"] = int((m0 - start) + (end - max(m1, m0)))
+
+    # The camera's clock: offset, then whole microseconds (the sensor's tick).
+    events = events.copy()
+    events["t"] += task.clock_offset_ns
+    events = quantize_to_us(events)
+    servos = _servo_objects(scene)
+    triggers = empty_triggers()
+    servo_times = []
+    if servos:
+        drive = servos[0].servo
+        t_start_servo = drive.start_ns
+        t_done_servo = drive.start_ns + int(drive.profile.boundaries_ns[-1])
+        servo_times = [(t_start_servo, "START"), (t_done_servo, "DONE")]
+        edges = [(t_start_servo, 1), (t_start_servo + TRIGGER_PULSE_NS, 0)]
+        edges = [(t, v) for t, v in edges if start <= t <= end]
+        if edges:
+            tt = np.array([t for t, _ in edges], np.int64) + task.clock_offset_ns
+            triggers = make_triggers(tt - tt % 1000, np.zeros(len(edges)), [v for _, v in edges])
+
+    bag_path = out / task.name
+    rec_start = start + task.clock_offset_ns
+    with BagWriter(bag_path) as bag:
+        bag.write(CAMERA_INFO_TOPIC, "sensor_msgs/msg/CameraInfo",
+                  camera_info(camera.width, camera.height, _K(camera), stamp_ns=rec_start),
+                  rec_start)
+        bag.write(POSE_TOPIC, "geometry_msgs/msg/PoseStamped",
+                  pose_stamped(T, rec_start, "world"), rec_start)
+        for t_scene, what in servo_times:
+            stamp = t_scene + task.clock_offset_ns
+            device = t_scene + task.device_offset_ns
+            bag.write(TRIGGER_TOPIC, "sensor_msgs/msg/TimeReference",
+                      time_reference(stamp, device - device % 1000, f"rig_servo {what}"), stamp)
+        for drive_obj in servos[:1]:
+            for t_scene in range(start, end + 1, JOINT_STATE_PERIOD_NS):
+                stamp = t_scene + task.clock_offset_ns
+                angle = drive_obj.servo.angle_rad(t_scene)
+                bag.write(JOINT_TOPIC, "sensor_msgs/msg/JointState",
+                          joint_state([drive_obj.name], [angle], stamp_ns=stamp), stamp)
+        bag.write_events(EVENT_TOPIC, events, width=camera.width, height=camera.height,
+                         encoding="evt3", triggers=triggers if len(triggers) else None)
+
+    renders += _write_frames(renderer, T, scene, (m0, m1), task, options,
+                             out / "frames" / f"{task.name}.npz")
+    renders += _write_ground_truth(renderer, T, scene, task, options,
+                                   out / "ground_truth" / f"{task.name}.npz")
+    return ViewResult(task.name, int(events.size), int(len(triggers)), renders,
+                      time.perf_counter() - t0, stats)
+
+
+def _K(camera: PinholeCamera) -> np.ndarray:
+    return np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]], np.float64)
+
+
+def _write_frames(renderer, T, scene, motion, task, options, path) -> int:
+    """Motion-blurred frames: the mean of `blur_samples` renders over each exposure."""
+    if options.frame_rate_hz == 0:
+        return 0
+    start, end = scene.start_ns, scene.end_ns
+    period = int(round(1e9 / options.frame_rate_hz))
+    n = (end - start) // period
+    if n < 1:
+        return 0
+    m0, m1 = motion
+    k = options.blur_samples
+    frames = np.empty((n, renderer.camera.height, renderer.camera.width), np.float32)
+    cache: dict[int, np.ndarray] = {}
+    renders = 0
+    for i in range(n):
+        a = start + i * period
+        acc = np.zeros(frames.shape[1:], np.float64)
+        for j in range(k):
+            t = a + (2 * j + 1) * period // (2 * k)
+            # Outside the motion span the image equals the one at the span's edge.
+            key = min(max(t, m0), m1) if m1 > m0 else start
+            img = cache.get(key)
+            if img is None:
+                img = renderer(T, key)
+                renders += 1
+                if not (m0 < key < m1):
+                    cache[key] = img
+            acc += img
+        frames[i] = acc / k
+    t_exp = start + period * np.arange(n + 1, dtype=np.int64) + task.clock_offset_ns
+    with atomic_output(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, frames=frames, t_start=t_exp[:-1], t_end=t_exp[1:],
+                            t=t_exp[:-1] + period // 2)
+    return renders
+
+
+def _write_ground_truth(renderer, T, scene, task, options, path) -> int:
+    n = options.gt_times
+    if n == 0:
+        return 0
+    t = np.array([scene.start_ns + ((scene.end_ns - scene.start_ns) * i) // max(1, n - 1)
+                  for i in range(n)], np.int64)
+    results = [renderer.render(T, int(ti)) for ti in t]
+    with atomic_output(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, t_scene=t, t_view=t + task.clock_offset_ns,
+                            intensity=np.stack([r.intensity for r in results]),
+                            depth=np.stack([r.depth for r in results]),
+                            mask=np.stack([r.mask for r in results]))
+    return n
+
+
+def _session_yaml(scene, scene_ref, camera, options, tasks, results) -> dict:
+    by_name = {r.name: r for r in results}
+    span = scene.motion_span_ns()
+    servos = _servo_objects(scene)
+    views = []
+    for task in tasks:
+        r = by_name[task.name]
+        views.append({
+            "name": task.name,
+            "bag": task.name,
+            "split": task.split,
+            "azimuth_deg": task.azimuth_deg,
+            "T_world_cam": np.asarray(task.T_world_cam).tolist(),
+            "events": r.events,
+            "trigger_events": r.triggers,
+            "frames": f"frames/{task.name}.npz" if options.frame_rate_hz else None,
+            "ground_truth": {
+                "clock_offset_ns": task.clock_offset_ns,
+                "device_offset_ns": task.device_offset_ns,
+                "file": f"ground_truth/{task.name}.npz" if options.gt_times else None,
+            },
+            "simulation": {"renders": r.renders, "seconds": round(r.seconds, 3), **r.stats},
+        })
+    ring = scene.cameras.ring
+    return {
+        "format": SESSION_FORMAT,
+        "format_version": SESSION_FORMAT_VERSION,
+        "software_version": __version__,
+        "source": {"kind": "simulation", "scene": scene.name, "scene_ref": str(scene_ref),
+                   "seed": options.seed},
+        "rig": {"kind": "virtual", "ring_radius_m": ring.radius,
+                "elevation_deg": ring.elevation_deg, "look_at": list(map(float, ring.look_at)),
+                "firmware_version": None, "device_serial": "virtual"},
+        "camera": {"width": camera.width, "height": camera.height, "K": _K(camera).tolist(),
+                   "distortion_model": "plumb_bob", "D": [0.0] * 5,
+                   "topics": {"events": EVENT_TOPIC, "camera_info": CAMERA_INFO_TOPIC,
+                              "pose": POSE_TOPIC}},
+        "servo": ({"joint": servos[0].name, "joint_states": JOINT_TOPIC, "trigger": TRIGGER_TOPIC,
+                   "start_ns_scene": servos[0].servo.start_ns} if servos else None),
+        "thresholds": {"c_pos": options.c_pos, "c_neg": options.c_neg, "eps": options.eps,
+                       "threshold_sigma": options.threshold_sigma,
+                       "refractory_ns": options.refractory_ns},
+        "time": {"scene_start_ns": scene.start_ns, "scene_end_ns": scene.end_ns,
+                 "motion_start_ns": None if span is None else span[0],
+                 "motion_end_ns": None if span is None else span[1]},
+        "frames": {"rate_hz": options.frame_rate_hz, "blur_samples": options.blur_samples},
+        "options": {k: (list(v) if isinstance(v, tuple) else v)
+                    for k, v in asdict(options).items()},
+        "views": views,
+    }
