@@ -1,0 +1,391 @@
+"""OpenEB / Metavision RAW files: `% ` text header lines followed by EVT 3.0 or EVT 2.0 words.
+
+    read_raw_header(path) -> RawHeader
+    read_raw(path) -> (Decoded, RawHeader)         whole file, exact-size output
+    iter_raw(path) -> Iterator[Decoded]             bounded memory, chunk by chunk
+    write_raw(path, events, width=, height=, encoding="evt3", triggers=None)
+
+Header: lines starting with "% " (or a bare "%") before the binary data; it ends after a
+"% end" line or at the first line that does not start that way. The encoding comes from
+`% format EVT3;height=720;width=1280` or from the older `% evt 3.0` / `% evt 2.0` lines; the
+geometry from the format line's width/height or from `% geometry 1280x720`. Event times in a
+RAW file are sensor microseconds: t_ns = 1000 * us.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from ..errors import FormatError, InputError, OutputExistsError
+from ..events.codecs import Decoded, make_decoder, make_encoder
+from ..events.codecs._common import check_events_for_us, concat_triggers, triggers_to_us
+from ..events.types import EVENT_DTYPE, MAX_SENSOR_SIZE
+
+_MAX_LINE = 1 << 16
+_MAX_HEADER = 1 << 24
+_ENCODING_NAMES = {"EVT3": "evt3", "EVT3.0": "evt3", "EVT2": "evt2", "EVT2.0": "evt2"}
+_EVT_VERSIONS = {"3.0": "evt3", "3": "evt3", "2.0": "evt2", "2": "evt2"}
+_UNSUPPORTED = {"EVT21", "EVT2.1", "2.1"}
+_WRITE_CHUNK_EVENTS = 1 << 20
+
+
+@dataclass
+class RawHeader:
+    """What a RAW file's text header says. width / height are None when it gives no geometry."""
+
+    encoding: str
+    width: int | None
+    height: int | None
+    fields: dict[str, str] = field(default_factory=dict)
+    header_bytes: int = 0
+
+
+def _parse_header_bytes(read, source: str) -> tuple[dict[str, str], int]:
+    """Parse header lines from the byte source `read(offset, n) -> bytes`.
+
+    Returns (fields, header_bytes). Field keys keep their spelling; the first word after
+    "% " is the key and the rest of the line (stripped) is the value.
+    """
+    fields: dict[str, str] = {}
+    pos = 0
+    buf = read(0, 1 << 16)
+    base = 0
+    while True:
+        rel = pos - base
+        if rel >= len(buf):
+            more = read(pos, 1 << 16)
+            if not more:
+                break                        # end of file: header only
+            buf, base, rel = more, pos, 0
+        if buf[rel:rel + 1] != b"%":
+            break
+        if rel + 1 >= len(buf):
+            buf = buf[rel:] + read(base + len(buf), 1 << 16)
+            base, rel = pos, 0
+        if buf[rel + 1:rel + 2] not in (b" ", b"\n", b"\r", b""):
+            break                            # '%' followed by something else: binary data
+        nl = buf.find(b"\n", rel)
+        while nl < 0:
+            if len(buf) - rel > _MAX_LINE:
+                raise FormatError(f"header line longer than {_MAX_LINE} bytes; this is not an "
+                                  "OpenEB RAW header (or the file is corrupt)", source=source,
+                                  offset=pos)
+            more = read(base + len(buf), 1 << 16)
+            if not more:
+                raise FormatError("header line has no end of line: the file is truncated inside its "
+                                  "header", source=source, offset=pos)
+            buf = buf[rel:] + more
+            base, rel = pos, 0
+            nl = buf.find(b"\n", rel)
+        raw_line = buf[rel:nl]
+        if raw_line.endswith(b"\r"):
+            raw_line = raw_line[:-1]
+        if raw_line != b"%" and not raw_line.startswith(b"% "):
+            break                            # e.g. '%' + CR + binary: not a header line
+        try:
+            text = raw_line.decode("utf-8")
+        except UnicodeDecodeError:
+            raise FormatError("header line is not UTF-8 text; the file is corrupt or the header is "
+                              "not terminated with '% end'", source=source, offset=pos) from None
+        if any(ord(c) < 32 and c != "\t" for c in text):
+            raise FormatError("header line contains control characters; the file is corrupt or the "
+                              "header is not terminated with '% end'", source=source, offset=pos)
+        pos = base + nl + 1
+        if pos > _MAX_HEADER:
+            raise FormatError(f"header longer than {_MAX_HEADER} bytes; not an OpenEB RAW file",
+                              source=source, offset=pos)
+        body = text[2:].strip() if len(text) > 1 else ""
+        if body == "end":
+            break
+        if not body:
+            continue
+        key, _, value = body.partition(" ")
+        fields[key] = value.strip()
+    return fields, pos
+
+
+def _lookup(fields: dict[str, str], key: str) -> str | None:
+    for k, v in fields.items():
+        if k.lower() == key:
+            return v
+    return None
+
+
+def _positive_int(text: str, what: str, source: str) -> int:
+    try:
+        v = int(text.strip())
+    except ValueError:
+        raise FormatError(f"header {what} {text!r} is not an integer", source=source) from None
+    if not 0 < v <= 1 << 16:
+        raise FormatError(f"header {what} {v} is out of range", source=source)
+    return v
+
+
+def _interpret(fields: dict[str, str], header_bytes: int, source: str) -> RawHeader:
+    enc_fmt = enc_evt = None
+    width = height = None
+    fmt = _lookup(fields, "format")
+    if fmt is not None:
+        parts = [p.strip() for p in fmt.split(";")]
+        name = parts[0].upper()
+        if name in _UNSUPPORTED:
+            raise FormatError(f"format {parts[0]} (EVT 2.1) is not supported; only EVT 3.0 and "
+                              "EVT 2.0 RAW files can be read (convert it with metavision tools)",
+                              source=source)
+        enc_fmt = _ENCODING_NAMES.get(name)
+        if enc_fmt is None:
+            raise FormatError(f"unknown format {parts[0]!r} in '% format {fmt}'; supported: EVT3, EVT2",
+                              source=source)
+        for opt in parts[1:]:
+            k, _, v = opt.partition("=")
+            if k.strip().lower() == "width":
+                width = _positive_int(v, "format width", source)
+            elif k.strip().lower() == "height":
+                height = _positive_int(v, "format height", source)
+    evt = _lookup(fields, "evt")
+    if evt is not None:
+        ver = evt.split()[0] if evt.split() else ""
+        if ver in _UNSUPPORTED:
+            raise FormatError("'% evt 2.1' (EVT 2.1) is not supported; only EVT 3.0 and EVT 2.0",
+                              source=source)
+        enc_evt = _EVT_VERSIONS.get(ver)
+        if enc_evt is None and enc_fmt is None:
+            raise FormatError(f"unknown event format version '% evt {evt}'; supported: 3.0, 2.0",
+                              source=source)
+    if enc_fmt and enc_evt and enc_fmt != enc_evt:
+        raise FormatError(f"header contradicts itself: '% format {fmt}' but '% evt {evt}'",
+                          source=source)
+    encoding = enc_fmt or enc_evt
+    if encoding is None:
+        raise FormatError("the header names no event encoding; add a line such as "
+                          "'% format EVT3;height=720;width=1280' (or '% evt 3.0') before the data",
+                          source=source)
+    geom = _lookup(fields, "geometry")
+    if geom is not None and (width is None or height is None):
+        w, sep, h = geom.lower().partition("x")
+        if not sep:
+            raise FormatError(f"'% geometry {geom}' is not WIDTHxHEIGHT", source=source)
+        width = _positive_int(w, "geometry width", source) if width is None else width
+        height = _positive_int(h, "geometry height", source) if height is None else height
+    return RawHeader(encoding, width, height, dict(fields), header_bytes)
+
+
+def read_raw_header(path) -> RawHeader:
+    """Parse the text header of a RAW file (FormatError if it is malformed or names no encoding)."""
+    source = str(path)
+    try:
+        with open(path, "rb") as f:
+            def read(offset, n):
+                f.seek(offset)
+                return f.read(n)
+            fields, header_bytes = _parse_header_bytes(read, source)
+    except FileNotFoundError:
+        raise InputError(f"{source}: no such file") from None
+    except IsADirectoryError:
+        raise InputError(f"{source}: is a directory, not a RAW file") from None
+    return _interpret(fields, header_bytes, source)
+
+
+def parse_raw_header(data: bytes, source: str = "<bytes>") -> RawHeader:
+    """Parse a RAW header held in memory (the start of a file)."""
+    mv = bytes(data)
+    fields, header_bytes = _parse_header_bytes(lambda o, n: mv[o:o + n], source)
+    return _interpret(fields, header_bytes, source)
+
+
+def _chunk_size(chunk_bytes) -> int:
+    if isinstance(chunk_bytes, bool) or not isinstance(chunk_bytes, (int, np.integer)):
+        raise InputError(f"chunk_bytes must be an integer, got {chunk_bytes!r}")
+    c = int(chunk_bytes) // 8 * 8
+    if c <= 0:
+        raise InputError(f"chunk_bytes must be at least 8, got {chunk_bytes}")
+    return c
+
+
+def _read_body(path, header_bytes: int, piece: int, source: str, on_piece=None) -> np.ndarray:
+    """The bytes after the header, in one aligned array, read `piece` bytes at a time;
+    `on_piece(start, view)` sees each piece while it is still in cache."""
+    with open(path, "rb", buffering=0) as f:
+        size = os.fstat(f.fileno()).st_size
+        body = np.empty(max(size - header_bytes, 0), np.uint8)
+        f.seek(header_bytes)
+        got = 0
+        view = memoryview(body)
+        while got < body.shape[0]:
+            n = f.readinto(view[got:got + piece])
+            if not n:
+                break
+            if on_piece is not None:
+                on_piece(got, body[got:got + n])
+            got += n
+        del view
+    if got < body.shape[0]:
+        raise InputError(f"{source}: the file shrank while being read ({got} of "
+                         f"{body.shape[0]} body bytes); read it again when it is complete")
+    return body
+
+
+def read_raw(path, *, chunk_bytes: int = 64 << 20, time_low_carry: bool = False
+             ) -> tuple[Decoded, RawHeader]:
+    """Decode a whole RAW file; returns (Decoded, RawHeader). Times: t_ns = 1000 * sensor us.
+
+    The body is read into memory (counting an upper bound of its events piece by piece while
+    in cache), then streamed through the decoder in `chunk_bytes` pieces straight into one
+    event array of that size, so no partial results are concatenated. For bounded memory use
+    iter_raw(). `time_low_carry` (EVT 3.0) reads files whose writer omitted TIME_HIGH words
+    (expelliarmus). Errors name the file and the absolute byte offset.
+    """
+    header = read_raw_header(path)
+    chunk = _chunk_size(chunk_bytes)
+    source = str(path)
+    dec = make_decoder(header.encoding, source=source, offset=header.header_bytes,
+                       time_low_carry=time_low_carry)
+    # count the events piece by piece while the bytes are in cache; pieces must start on
+    # word boundaries (a short read would break that: then count again afterwards)
+    counts = []
+    state = {"next": 0, "aligned": True}
+
+    def count_piece(start, view):
+        if state["aligned"] and start == state["next"]:
+            counts.append(dec.count_events(view))
+            state["next"] = start + view.shape[0]
+            state["aligned"] = view.shape[0] % 8 == 0
+        else:
+            state["next"] = -1
+
+    body = _read_body(path, header.header_bytes, min(chunk, 1 << 20), source, count_piece)
+    if state["next"] == body.shape[0]:
+        total = sum(counts)
+    else:
+        total = sum(dec.count_events(body[a:a + chunk]) for a in range(0, body.shape[0], chunk))
+    out = np.empty(total, EVENT_DTYPE)
+    pos = 0
+    trigs = []
+    for a in range(0, body.shape[0], chunk):
+        k, tr = dec._feed_into(body[a:a + chunk], out[pos:])
+        pos += k
+        if tr.size:
+            trigs.append(tr)
+    del body
+    dec.close()
+    if pos < total:
+        out = out[:pos].copy() if pos < total // 2 else out[:pos]
+    return Decoded(out, concat_triggers(trigs)), header
+
+
+def iter_raw(path, *, chunk_bytes: int = 16 << 20, time_low_carry: bool = False
+             ) -> Iterator[Decoded]:
+    """Yield the events of a RAW file chunk by chunk (memory bounded by `chunk_bytes`).
+
+    Chunks that decode to nothing are skipped; a truncated last word raises FormatError at
+    the end.
+    """
+    header = read_raw_header(path)
+    chunk = _chunk_size(chunk_bytes)
+    dec = make_decoder(header.encoding, source=str(path), offset=header.header_bytes,
+                       time_low_carry=time_low_carry)
+    buf = np.empty(chunk, np.uint8)
+    with open(path, "rb") as f:
+        f.seek(header.header_bytes)
+        while True:
+            n = f.readinto(memoryview(buf))
+            if not n:
+                break
+            part = dec.feed(buf[:n])
+            if part.events.size or part.triggers.size:
+                yield part
+    dec.close()
+
+
+def _umask() -> int:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    return 0o022
+
+
+def _header_text(encoding: str, width: int, height: int) -> bytes:
+    evt = "3.0" if encoding == "evt3" else "2.0"
+    fmt = "EVT3" if encoding == "evt3" else "EVT2"
+    lines = [
+        "% camera_integrator_name evdnerf_ros",
+        f"% evt {evt}",
+        f"% format {fmt};height={height};width={width}",
+        f"% geometry {width}x{height}",
+        "% end",
+    ]
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def write_raw(path, events, *, width: int, height: int, encoding: str = "evt3",
+              triggers=None) -> None:
+    """Write events (whole microseconds, t_ns = 1000 * us) as an OpenEB RAW file.
+
+    Refuses an existing path (OutputExistsError); the file appears atomically (written to a
+    temporary file in the same directory, then linked into place; the temporary file is
+    removed on any error).
+    """
+    if encoding not in ("evt3", "evt2"):
+        raise InputError(f"RAW files hold evt3 or evt2, not {encoding!r}")
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 < v <= MAX_SENSOR_SIZE:
+            raise InputError(f"{name} must be an integer in 1..{MAX_SENSOR_SIZE}, got {v!r}")
+    path = Path(path)
+    if path.exists():
+        raise OutputExistsError(path)
+    # validate everything up front so that a bad input never leaves a file behind
+    name = "EVT 3.0" if encoding == "evt3" else "EVT 2.0"
+    events = check_events_for_us(events, 0, name)
+    for axis, limit in (("x", int(width)), ("y", int(height))):
+        col = events[axis]
+        if col.size and int(col.max()) >= limit:
+            i = int(np.flatnonzero(col >= limit)[0])
+            raise InputError(f"events: event {i} has {axis}={int(col[i])} outside the declared "
+                             f"{width}x{height} geometry; give the sensor's real width and height")
+    triggers, _ = triggers_to_us(triggers, 0, name, max_id=16 if encoding == "evt3" else 32)
+    enc = make_encoder(encoding)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
+    try:
+        os.chmod(tmp, 0o666 & ~_umask())     # mkstemp makes 0600; give the usual permissions
+        with os.fdopen(fd, "wb") as f:
+            f.write(_header_text(encoding, int(width), int(height)))
+            n = events.shape[0]
+            if triggers.size:
+                # triggers go with the chunk that covers their time
+                tt = triggers["t"]
+                bounds = [events["t"][min(a + _WRITE_CHUNK_EVENTS, n) - 1] if n else None
+                          for a in range(0, max(n, 1), _WRITE_CHUNK_EVENTS)]
+            for ci, a in enumerate(range(0, max(n, 1), _WRITE_CHUNK_EVENTS)):
+                ev = events[a:a + _WRITE_CHUNK_EVENTS]
+                tr = None
+                if triggers.size:
+                    last = ci == len(bounds) - 1
+                    lo = 0 if ci == 0 else np.searchsorted(tt, bounds[ci - 1], side="right")
+                    hi = tt.shape[0] if last else np.searchsorted(tt, bounds[ci], side="right")
+                    tr = triggers[lo:hi]
+                f.write(enc.encode(ev, tr))
+            f.flush()
+            os.fsync(f.fileno())
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            raise OutputExistsError(path) from None
+        except OSError:                      # no hard links here: replace after a re-check
+            if path.exists():
+                raise OutputExistsError(path) from None
+            os.replace(tmp, path)
+    finally:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
