@@ -82,6 +82,24 @@ def _cmd_video2events(args) -> int:
     return 0
 
 
+def _cmd_simulate(args) -> int:
+    from .sim.session import SimulationOptions, simulate_session
+    from .units import parse_duration_ns
+
+    options = SimulationOptions(
+        views=args.views, val_views=args.val_views,
+        resolution=tuple(args.resolution) if args.resolution else None, seed=args.seed,
+        c_pos=args.c_pos, c_neg=args.c_neg, eps=args.eps, threshold_sigma=args.sigma,
+        refractory_ns=args.refractory_ns, tolerance_c=args.tolerance_c,
+        min_step_ns=parse_duration_ns(args.min_step, name="--min-step"),
+        max_step_ns=parse_duration_ns(args.max_step, name="--max-step"),
+        supersample=args.supersample, frame_rate_hz=args.frame_rate,
+        blur_samples=args.blur_samples, gt_times=args.gt_times,
+        max_clock_offset_s=args.max_clock_offset, jobs=args.jobs)
+    simulate_session(args.scene, Path(args.output), options, overwrite=args.overwrite)
+    return 0
+
+
 def _cmd_demo(args) -> int:
     from .demo import run_demo
 
@@ -146,6 +164,54 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gamma-8bit", action="store_true",
                    help="accept 8-bit gamma-encoded frames and linearise them ((v/255)^2.2)")
     p.set_defaults(func=_cmd_video2events)
+
+    from .sim.session import SimulationOptions
+
+    d = SimulationOptions()
+    p = sub.add_parser("simulate", help="simulate a capture session of a synthetic scene",
+                       description="Render a scene (preset name: jet-down, jet-spiral, jet-land, "
+                                   "multi, lego, fork; or a scene YAML) from every camera of its "
+                                   "ring, generate exact events with adaptive time sampling, and "
+                                   "write a session: session.yaml + one rosbag2 per view "
+                                   "(EventPacket evt3, CameraInfo, camera pose, servo JointState "
+                                   "and START/DONE for servo scenes), blurred frames and ground "
+                                   "truth. Each view gets its own clock offset (ground truth in "
+                                   "session.yaml) for sync to find.")
+    p.add_argument("scene", help="preset name or scene YAML path")
+    p.add_argument("-o", "--output", required=True, help="session folder (must not exist)")
+    p.add_argument("--views", type=int, help="training views (default: the scene's ring)")
+    p.add_argument("--val-views", type=int, help="validation views (default: the scene's; 0: none)")
+    p.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"),
+                   help="image size (default: the scene's intrinsics)")
+    p.add_argument("--seed", type=int, default=d.seed, help="clock offsets and noise (default %(default)s)")
+    p.add_argument("--c-pos", type=float, default=d.c_pos, help="C+ (default %(default)s)")
+    p.add_argument("--c-neg", type=float, default=d.c_neg, help="C- (default %(default)s)")
+    p.add_argument("--eps", type=float, default=d.eps, help="log offset, white = 1 (default %(default)s)")
+    p.add_argument("--sigma", type=float, default=d.threshold_sigma,
+                   help="per-pixel threshold mismatch std (default %(default)s)")
+    p.add_argument("--refractory-ns", type=int, default=d.refractory_ns, help="refractory period (ns)")
+    p.add_argument("--tolerance-c", type=float, default=d.tolerance_c,
+                   help="adaptive sampling: allowed midpoint deviation from linear, in units of C "
+                        "(default %(default)s)")
+    p.add_argument("--min-step", default=f"{d.min_step_ns}ns",
+                   help="adaptive sampling: finest step (default 1ms)")
+    p.add_argument("--max-step", default=f"{d.max_step_ns}ns",
+                   help="adaptive sampling: coarsest step (default 10ms)")
+    p.add_argument("--supersample", type=int, default=d.supersample,
+                   help="antialiasing: s x s rays per pixel (default %(default)s)")
+    p.add_argument("--frame-rate", type=float, default=d.frame_rate_hz,
+                   help="blurred grey frames per second; 0: none (default %(default)s)")
+    p.add_argument("--blur-samples", type=int, default=d.blur_samples,
+                   help="renders averaged per frame exposure (default %(default)s)")
+    p.add_argument("--gt-times", type=int, default=d.gt_times,
+                   help="ground-truth intensity/depth renders per view (default %(default)s)")
+    p.add_argument("--max-clock-offset", type=float, default=d.max_clock_offset_s,
+                   help="per-view camera clock offsets are drawn in [0, this) seconds "
+                        "(default %(default)s)")
+    p.add_argument("--jobs", type=int, default=d.jobs,
+                   help="worker processes; 0 = one per CPU (default %(default)s)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing session folder")
+    p.set_defaults(func=_cmd_simulate)
 
     p = sub.add_parser("info", help="summarise an event file or bag",
                        description="Print topics, message types and counts (bags), event count, "

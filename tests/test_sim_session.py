@@ -1,0 +1,135 @@
+"""`evdnerf simulate`: session layout, exact events in each view's clock, rig topics."""
+
+import numpy as np
+import pytest
+import yaml
+
+from evdnerf_ros.cli import main
+from evdnerf_ros.errors import InputError, OutputExistsError
+from evdnerf_ros.events.codecs import quantize_to_us
+from evdnerf_ros.io.messages import (K_from_camera_info, pose_from_pose_stamped,
+                                     time_reference_ns)
+from evdnerf_ros.io.rosbag2 import open_bag, read_events
+from evdnerf_ros.sim.generator import EventGenerator
+from evdnerf_ros.sim.render import SceneRenderer
+from evdnerf_ros.sim.sampling import simulate_renderer
+from evdnerf_ros.sim.scene import load_scene
+from evdnerf_ros.sim.session import SimulationOptions, _view_tasks, simulate_session
+
+OPTS = SimulationOptions(views=2, val_views=1, resolution=(32, 24), frame_rate_hz=10,
+                         blur_samples=2, gt_times=2, supersample=1, jobs=1,
+                         max_step_ns=20_000_000, min_step_ns=5_000_000)
+
+
+@pytest.fixture(scope="module")
+def fork_session(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim") / "fork"
+    session = simulate_session("fork", out, OPTS, log=lambda *_: None)
+    return out, session
+
+
+def test_layout_and_session_yaml(fork_session):
+    out, session = fork_session
+    on_disk = yaml.safe_load((out / "session.yaml").read_text())
+    assert on_disk == session
+    assert session["format"] == "evdnerf-rig-session" and session["format_version"] == 1
+    names = [v["name"] for v in session["views"]]
+    assert names == ["view_00", "view_01", "val_00"]
+    assert [v["split"] for v in session["views"]] == ["train", "train", "val"]
+    assert session["views"][2]["azimuth_deg"] == pytest.approx(10.0)
+    for v in session["views"]:
+        assert (out / v["bag"] / "metadata.yaml").exists()
+        assert (out / v["frames"]).exists() and (out / v["ground_truth"]["file"]).exists()
+    offsets = [v["ground_truth"]["clock_offset_ns"] for v in session["views"]]
+    assert len(set(offsets)) == 3 and all(0 <= o < 5_000_000_000 for o in offsets)
+
+
+def test_events_equal_the_generator_in_the_view_clock(fork_session):
+    out, session = fork_session
+    view = session["views"][0]
+    scene = load_scene("fork")
+    cam = scene.camera.resized(32, 24)
+    renderer = SceneRenderer(scene, cam, 1)
+    T = np.array(view["T_world_cam"])
+    # Regenerate with the same per-view seed and sampling; compare exactly.
+    task = _view_tasks(scene, OPTS)[0]
+    gen = EventGenerator(32, 24, c_pos=OPTS.c_pos, c_neg=OPTS.c_neg, seed=task.seed)
+    gen.reset(renderer(T, scene.start_ns), scene.start_ns)
+    m0, m1 = scene.motion_span_ns()
+    chunks = [gen.step_log(gen.last_log(), m0)]
+    ev, _ = simulate_renderer(lambda t: renderer(T, t), m0, m1, gen,
+                              tolerance_c=OPTS.tolerance_c, min_step_ns=OPTS.min_step_ns,
+                              max_step_ns=OPTS.max_step_ns)
+    chunks += [ev, gen.step_log(gen.last_log(), scene.end_ns)]
+    direct = np.concatenate(chunks)
+    direct["t"] += view["ground_truth"]["clock_offset_ns"]
+    stream = read_events(out / view["bag"])
+    assert stream.encoding == "evt3" and (stream.width, stream.height) == (32, 24)
+    assert len(direct) > 100 and np.array_equal(stream.events, quantize_to_us(direct))
+    assert view["events"] == len(direct)
+
+
+def test_servo_topics_and_trigger_events(fork_session):
+    out, session = fork_session
+    view = session["views"][1]
+    offset = view["ground_truth"]["clock_offset_ns"]
+    device = view["ground_truth"]["device_offset_ns"]
+    scene = load_scene("fork")
+    servo = [o for o in scene.all_objects() if o.servo is not None][0].servo
+    start = servo.start_ns
+    done = start + int(servo.profile.boundaries_ns[-1])
+    stream = read_events(out / view["bag"])
+    assert stream.triggers["t"].tolist() == [(start + offset) // 1000 * 1000,
+                                             (start + 1_000_000 + offset) // 1000 * 1000]
+    assert stream.triggers["value"].tolist() == [1, 0]
+    with open_bag(out / view["bag"]) as bag:
+        refs = [time_reference_ns(bag.deserialize(m.data, m.msgtype))
+                for m in bag.messages("/rig/servo/trigger")]
+        assert [(s, src) for s, _, src in refs] == [(start + offset, "rig_servo START"),
+                                                     (done + offset, "rig_servo DONE")]
+        assert [r for _, r, _ in refs] == [(start + device) // 1000 * 1000,
+                                           (done + device) // 1000 * 1000]
+        joints = [bag.deserialize(m.data, m.msgtype) for m in bag.messages("/rig/servo/joint_states")]
+        assert len(joints) == (scene.end_ns - scene.start_ns) // 20_000_000 + 1
+        mid = joints[30]
+        t_scene = mid.header.stamp.sec * 10 ** 9 + mid.header.stamp.nanosec - offset
+        assert mid.position[0] == pytest.approx(servo.angle_rad(t_scene))
+        info = [bag.deserialize(m.data, m.msgtype) for m in bag.messages("/event_camera/camera_info")]
+        K = K_from_camera_info(info[0])
+        assert K[0, 2] == pytest.approx(15.5) and K[1, 2] == pytest.approx(11.5)
+        pose = [bag.deserialize(m.data, m.msgtype) for m in bag.messages("/rig/camera_pose")]
+        T, _, frame = pose_from_pose_stamped(pose[0])
+        np.testing.assert_allclose(T, np.array(view["T_world_cam"]), atol=1e-12)
+
+
+def test_frames_and_ground_truth(fork_session):
+    out, session = fork_session
+    view = session["views"][0]
+    frames = np.load(out / view["frames"])
+    assert frames["frames"].shape == (12, 24, 32) and frames["t"].dtype == np.int64
+    # Before the servo starts (0.1 s) the scene is static: the first frame is one render.
+    gt = np.load(out / view["ground_truth"]["file"])
+    np.testing.assert_allclose(frames["frames"][0], gt["intensity"][0], rtol=1e-6)
+    assert gt["depth"].shape == (2, 24, 32) and gt["mask"].any()
+    assert np.all(gt["t_view"] - gt["t_scene"] == view["ground_truth"]["clock_offset_ns"])
+
+
+def test_static_spans_cost_one_render(fork_session):
+    _, session = fork_session
+    sim = session["views"][0]["simulation"]
+    assert sim["static_spans_ns"] == 200_000_000   # 0.1 s lead-in + 0.1 s tail of fork
+    # Adaptive sampling only inside the 1 s motion: at most 1 s / min_step intervals.
+    assert sim["intervals"] <= 1_000_000_000 // OPTS.min_step_ns
+
+
+def test_bad_input(tmp_path, capsys):
+    with pytest.raises(InputError, match="jet-down"):
+        simulate_session("no-such-scene", tmp_path / "x", OPTS)
+    with pytest.raises(InputError, match="c-pos"):
+        simulate_session("fork", tmp_path / "x", SimulationOptions(c_pos=-1))
+    (tmp_path / "exists").mkdir()
+    with pytest.raises(OutputExistsError):
+        simulate_session("fork", tmp_path / "exists", OPTS)
+    assert main(["simulate", "fork", "-o", str(tmp_path / "y"), "--views", "0"]) == 2
+    assert "--views must be >= 1" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exists"]
