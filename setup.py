@@ -11,7 +11,7 @@ setup(
     version="0.1.0",
     description="EvDNeRF rig toolkit: event-camera capture, sync, training and event publishing",
     packages=find_packages(include=["evdnerf_ros", "evdnerf_ros.*", "rig", "rig.*"]),
-    package_data={"evdnerf_ros.io": ["msg/*/msg/*.msg", "msg/*/*.msg", "msg/*.msg"]},
+    package_data={"evdnerf_ros.io": ["msg/*/msg/*.msg", "msg/ros1/*/msg/*.msg"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
