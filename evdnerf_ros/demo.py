@@ -1,9 +1,13 @@
-"""`evdnerf demo`: the end-to-end job on the embedded virtual scene.
+"""`evdnerf demo`: the end-to-end job on the virtual rig's embedded default scene.
 
-It grows with each part of the toolkit. Today: generate the rotating-bar scene's events
-and trigger edges, record them as a rosbag2 (EventPacket evt3 + CameraInfo), convert that
-bag into every container we speak, read each back and check it bit-exact, render an event
-image and the event-rate plot, and write a summary.
+It grows with each part of the toolkit. Today:
+1. simulate a small capture session of the `fork` preset (the real rig's servo-swung fork):
+   one rosbag2 per view with evt3 events, trigger edges, camera info, pose and servo topics,
+   each view in its own clock;
+2. convert the first view's recording into every container we speak, read each back and
+   check it is bit-exact;
+3. draw each view's event image at mid-swing and the event-rate curves of all views (their
+   onsets differ by the injected clock offsets: what `sync` will align).
 """
 
 from __future__ import annotations
@@ -16,11 +20,15 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_output
-from .demo_scene import RotatingBar
 from .errors import EvdnerfError
 from .events import event_image, event_rate, plot_event_rate, save_png, time_slice
-from .io.event_files import DEFAULT_TOPIC, EventFile, read_event_file, write_event_file
+from .io.event_files import EventFile, read_event_file, write_event_file
 from .io.info import describe, format_info
+from .sim.session import SimulationOptions, simulate_session
+
+SCENE = "fork"
+OPTIONS = SimulationOptions(views=4, val_views=0, resolution=(96, 72), frame_rate_hz=30,
+                            blur_samples=4, gt_times=3)
 
 # (file name, encoding, carries trigger events): every container the demo round-trips through.
 CONVERSIONS = [
@@ -35,62 +43,59 @@ CONVERSIONS = [
 
 
 def run_demo(out_dir: Path, *, overwrite: bool = False, log=print) -> dict:
-    scene = RotatingBar()
     with atomic_output(out_dir, overwrite=overwrite, directory=True) as tmp:
         tmp.mkdir()
-        summary = _run(scene, tmp, out_dir, log)
+        summary = _run(tmp, out_dir, log)
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
-    log(f"demo finished: outputs in {out_dir}/ (summary.json, event_image.png, event_rate.png)")
+    log(f"demo finished: outputs in {out_dir}/ (session/, conversions/, event_images.png, "
+        "event_rates.png, summary.json)")
     return summary
 
 
-def _run(scene: RotatingBar, out: Path, final_dir: Path, log) -> dict:
-    from .io.messages import camera_info
-    from .io.rosbag2 import BagWriter
+def _run(out: Path, final_dir: Path, log) -> dict:
+    start = time.perf_counter()
+    session = simulate_session(SCENE, out / "session", OPTIONS, log=log)
+    sim_seconds = time.perf_counter() - start
+    views = session["views"]
+    first = out / "session" / views[0]["bag"]
+    log(format_info(describe(first)).replace(str(out), str(final_dir)))
 
-    events, triggers = scene.events(), scene.triggers()
-    log(f"scene: rotating bar {scene.width}x{scene.height}, {len(events)} events, "
-        f"{len(triggers)} trigger edges")
-
-    bag_path = out / "recording"
-    fx = 0.9 * scene.width
-    K = np.array([[fx, 0, (scene.width - 1) / 2], [0, fx, (scene.height - 1) / 2], [0, 0, 1]])
-    with BagWriter(bag_path) as bag:
-        bag.write("/event_camera/camera_info", "sensor_msgs/msg/CameraInfo",
-                  camera_info(scene.width, scene.height, K, stamp_ns=int(events["t"][0])), int(events["t"][0]))
-        bag.write_events(DEFAULT_TOPIC, events, width=scene.width, height=scene.height,
-                         encoding="evt3", triggers=triggers)
-    recorded = read_event_file(bag_path)
-    _check_same(bag_path, recorded, events, triggers, with_triggers=True)
-    log(format_info(describe(bag_path)).replace(str(out), str(final_dir)))
-
-    summary = {"scene": "rotating-bar", "events": int(len(events)),
-               "triggers": int(len(triggers)), "round_trips": {}}
+    recorded = read_event_file(first)
+    summary = {"scene": SCENE, "views": len(views), "simulate_seconds": round(sim_seconds, 2),
+               "events_per_view": [v["events"] for v in views], "round_trips": {}}
+    (out / "conversions").mkdir()
     for name, encoding, keeps_triggers in CONVERSIONS:
-        path = out / name
-        start = time.perf_counter()
+        path = out / "conversions" / name
+        t0 = time.perf_counter()
         carried = recorded if keeps_triggers else replace(recorded, triggers=recorded.triggers[:0])
         write_event_file(path, carried, encoding=encoding)
-        back = read_event_file(path)
-        _check_same(path, back, events, triggers, with_triggers=keeps_triggers)
-        seconds = time.perf_counter() - start
+        _check_same(path, read_event_file(path), carried)
         size = sum(f.stat().st_size for f in path.rglob("*")) if path.is_dir() else path.stat().st_size
-        summary["round_trips"][name] = {"encoding": encoding, "bytes": size,
-                                        "bytes_per_event": size / len(events),
-                                        "seconds": round(seconds, 4), "bit_exact": True}
-        log(f"  {name:<20} {encoding or '-':<6} {size / len(events):6.2f} B/event  bit-exact")
+        n = max(1, len(recorded.events))
+        summary["round_trips"][name] = {"encoding": encoding, "bytes_per_event": round(size / n, 3),
+                                        "seconds": round(time.perf_counter() - t0, 4),
+                                        "bit_exact": True}
+        log(f"  {name:<20} {encoding or '-':<6} {size / n:6.2f} B/event  bit-exact")
 
-    window_start = scene.start_ns + 250_000_000
-    window = time_slice(events, window_start, window_start + 20_000_000)
-    save_png(out / "event_image.png", event_image(window, scene.width, scene.height), upscale=4)
-    plot_event_rate(out / "event_rate.png",
-                    {"rotating bar": event_rate(events["t"], 10_000_000, t_start=0)},
-                    title="demo scene: event rate (10 ms bins; motion starts at 0.2 s)")
+    images, curves = [], {}
+    servo_start = session["servo"]["start_ns_scene"]
+    for v in views:
+        data = recorded if v is views[0] else read_event_file(out / "session" / v["bag"])
+        offset = v["ground_truth"]["clock_offset_ns"]
+        mid_swing = servo_start + 350_000_000 + offset          # mid-way through the swing
+        window = time_slice(data.events, mid_swing, mid_swing + 20_000_000)
+        images.append(event_image(window, data.width, data.height))
+        curves[v["name"]] = event_rate(data.events["t"], 5_000_000)
+    gap = np.full((images[0].shape[0], 4, 3), 128, np.uint8)
+    sheet = np.concatenate([x for img in images for x in (img, gap)][:-1], axis=1)
+    save_png(out / "event_images.png", sheet, upscale=3)
+    plot_event_rate(out / "event_rates.png", curves,
+                    title="event rate per view (5 ms bins), each in its own clock", t_origin_ns=0)
     return summary
 
 
-def _check_same(path, got: EventFile, events, triggers, *, with_triggers: bool) -> None:
-    if not np.array_equal(got.events, events):
+def _check_same(path, got: EventFile, want: EventFile) -> None:
+    if not np.array_equal(got.events, want.events):
         raise EvdnerfError(f"{path}: events read back differ from those written")
-    if with_triggers and not np.array_equal(got.triggers, triggers):
+    if not np.array_equal(got.triggers, want.triggers):
         raise EvdnerfError(f"{path}: trigger events read back differ from those written")

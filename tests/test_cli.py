@@ -138,11 +138,12 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "-o", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["events"] > 50_000
+    assert summary["views"] == 4 and min(summary["events_per_view"]) > 1000
     assert all(v["bit_exact"] for v in summary["round_trips"].values())
-    assert (out / "event_image.png").exists() and (out / "event_rate.png").exists()
+    assert (out / "event_images.png").exists() and (out / "event_rates.png").exists()
+    assert (out / "session" / "session.yaml").exists()
     assert main(["demo", "-o", str(out)]) == 2          # refuses to overwrite
-    assert main(["demo", "-o", str(out), "--overwrite"]) == 0
+    assert "already exists" in capsys.readouterr().err
 
 
 def test_video2events_cli(tmp_path, capsys):
