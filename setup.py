@@ -34,7 +34,8 @@ setup(
     ],
     extras_require={
         "test": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "mcap>=1.1",
-                 "mcap-ros2-support>=0.5", "expelliarmus==1.1.12"],
+                 "mcap-ros2-support>=0.5", "expelliarmus==1.1.12",
+                 "evlib==0.13.2"],  # peer codec and peer simulator in tests/benchmarks
     },
     entry_points={"console_scripts": ["evdnerf = evdnerf_ros.cli:main"]},
     zip_safe=True,
