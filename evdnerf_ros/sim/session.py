@@ -41,12 +41,11 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-import yaml
-
 from .. import __version__
 from ..atomic import atomic_output
 from ..errors import InputError
-from ..events.types import empty_triggers, make_triggers, sort_events
+from ..events.types import empty_triggers, make_triggers
+from ..session.layout import SESSION_FORMAT, SESSION_FORMAT_VERSION, write_session_yaml
 from .camera import PinholeCamera
 from .generator import EventGenerator
 from .logmap import LOG_EPS
@@ -59,8 +58,6 @@ CAMERA_INFO_TOPIC = "/event_camera/camera_info"
 POSE_TOPIC = "/rig/camera_pose"
 JOINT_TOPIC = "/rig/servo/joint_states"
 TRIGGER_TOPIC = "/rig/servo/trigger"
-SESSION_FORMAT = "evdnerf-rig-session"
-SESSION_FORMAT_VERSION = 1
 JOINT_STATE_PERIOD_NS = 20_000_000    # servo frame: 50 Hz
 TRIGGER_PULSE_NS = 1_000_000          # trigger-out pulse width at motion start
 
@@ -148,7 +145,7 @@ def simulate_session(scene_ref, out_dir, options: SimulationOptions = Simulation
         (tmp / "ground_truth").mkdir()
         results = _run_views(scene, camera, tasks, options, tmp, log)
         session = _session_yaml(scene, scene_ref, camera, options, tasks, results)
-        (tmp / "session.yaml").write_text(yaml.safe_dump(session, sort_keys=False))
+        write_session_yaml(tmp, session)
     total = time.perf_counter() - wall0
     log(f"simulate: {len(tasks)} views, {sum(r.events for r in results)} events in "
         f"{total:.1f} s -> {out_dir}")
