@@ -31,6 +31,7 @@ setup(
         "rosbags>=0.11,<0.12",
         "trimesh>=4",  # OBJ/PLY/GLB mesh loading for scene objects
         "torch==2.13.0",
+        "numba==0.68.1",  # EVT 2.0 / 3.0 decode/encode hot loops compiled to C speed
     ],
     extras_require={
         "test": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "mcap>=1.1",

@@ -8,6 +8,10 @@ written to EVT 3.0 and EVT 2.0 RAW files by expelliarmus itself. Every decoder's
 checked against the source array before anything is timed. Timings are medians of R runs,
 ours and the peer's interleaved in the same process. Throughput = source events / second.
 
+Our codecs run as numba kernels; their compile / load cost is measured separately (cold
+start): fresh processes that import the codecs and time their first decode / encode calls,
+once with the on-disk kernel cache and once with an empty cache (full compilation).
+
 Peer note: expelliarmus' EVT 3.0 writer emits no TIME_HIGH words after the first, so its
 EVT 3.0 file is read here with time_low_carry=True (see tests/test_codec_peer_expelliarmus.py).
 A second EVT 3.0 file written by us (spec-conforming, with vectors) is timed as well; the
@@ -101,11 +105,63 @@ def machine_info() -> dict:
     return {
         "cpu": cpu, "logical_cpus": os.cpu_count(), "platform": platform.platform(),
         "python": platform.python_version(), "numpy": np.__version__,
-        "expelliarmus": version("expelliarmus"),
+        "numba": version("numba"), "expelliarmus": version("expelliarmus"),
         "loadavg_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
         "git_head": subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
                                    capture_output=True, text=True).stdout.strip() or None,
     }
+
+
+COLD_START_CODE = r"""
+import json, sys, time
+t0 = time.perf_counter()
+sys.path.insert(0, sys.argv[1])
+from evdnerf_ros.events.codecs import decode, encode
+from evdnerf_ros.events.codecs._synth import synthetic_events
+t1 = time.perf_counter()
+ev = synthetic_events(1000, seed=0)
+blobs = {enc: open(f"{sys.argv[2]}/{enc}.bin", "rb").read() for enc in ("evt3", "evt2")}
+out = {"import_s": t1 - t0}
+for enc in ("evt3", "evt2"):
+    t = time.perf_counter()
+    decode(blobs[enc], enc)
+    out[f"first_decode_{enc}_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    decode(blobs[enc], enc)
+    out[f"second_decode_{enc}_s"] = time.perf_counter() - t
+for enc in ("evt3", "evt2"):
+    t = time.perf_counter()
+    encode(ev, enc)
+    out[f"first_encode_{enc}_s"] = time.perf_counter() - t
+print(json.dumps(out))
+"""
+
+
+def cold_start(tmp: Path, repeats: int = 3) -> dict:
+    """Import + first-call times in fresh processes: with the kernel cache numba keeps on disk
+    (populated by this run), and with an empty cache directory (every kernel compiles).
+    The first kernel call of a process also pays numba's one-time code generator setup.
+    Medians over `repeats` processes; decode calls get 1000-event streams."""
+    src = synthetic_events(1000, seed=0)
+    for enc in ("evt3", "evt2"):
+        (tmp / f"{enc}.bin").write_bytes(encode(src, enc))
+    res = {}
+    for mode in ("cached", "no_cache"):
+        runs = []
+        for _ in range(repeats):
+            env = dict(os.environ)
+            empty = None
+            if mode == "no_cache":
+                empty = tmp / f"numba_cache_{len(runs)}"
+                shutil.rmtree(empty, ignore_errors=True)
+                env["NUMBA_CACHE_DIR"] = str(empty)
+            r = subprocess.run([sys.executable, "-c", COLD_START_CODE, str(ROOT), str(tmp)], env=env,
+                               capture_output=True, text=True, check=True)
+            runs.append(json.loads(r.stdout.strip().splitlines()[-1]))
+            if empty is not None:
+                shutil.rmtree(empty, ignore_errors=True)
+        res[mode] = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+    return res
 
 
 def main(argv=None):
@@ -223,12 +279,19 @@ def main(argv=None):
     mem["encode evt2 bytes ours"] = peak_traced(lambda: encode(src, "evt2"))
     results["memory"] = {
         "method": "tracemalloc peak over the call (numpy buffers are traced; excludes the "
-                  "input array already in memory)",
+                  "input array already in memory; the numba kernels write into numpy-allocated "
+                  "buffers and allocate nothing per event themselves)",
         "output_bytes_per_event": {"ours": 13, "peer": peer_itemsize},
         "peak_mb_per_mev": {k: v / 1e6 / mev for k, v in mem.items()},
     }
     for k, v in results["memory"]["peak_mb_per_mev"].items():
         print(f"memory {k:34s} {v:6.1f} MB per Mev")
+    results["cold_start"] = cold_start(tmp)
+    for mode, row in results["cold_start"].items():
+        print(f"cold start ({mode}): import {1e3 * row['import_s']:.0f} ms, first decode evt3 "
+              f"{1e3 * row['first_decode_evt3_s']:.0f} ms / evt2 {1e3 * row['first_decode_evt2_s']:.0f} ms, "
+              f"first encode evt3 {1e3 * row['first_encode_evt3_s']:.0f} ms / evt2 "
+              f"{1e3 * row['first_encode_evt2_s']:.0f} ms")
     results["machine"]["loadavg_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
     results["summary"] = {
         "decode_ratio_evt3_peer_file": results["decode"]["evt3 (peer-written file)"]["ratio_ours_over_peer"],
@@ -258,7 +321,7 @@ def plot(results, path):
     peer = [r["peer_mev_s"] for r in dec.values()] + [r["peer_file_mev_s"] for r in enc.values()]
     x = np.arange(len(labels))
     fig, ax = plt.subplots(figsize=(11, 4.8))
-    b1 = ax.bar(x - 0.2, ours, 0.4, label="evdnerf_ros (numpy)")
+    b1 = ax.bar(x - 0.2, ours, 0.4, label="evdnerf_ros (numba)")
     b2 = ax.bar(x + 0.2, peer, 0.4, label="expelliarmus (C)")
     for bars in (b1, b2):
         for b in bars:
@@ -270,10 +333,17 @@ def plot(results, path):
     ax.set_title(f"RAW codec throughput, {results['events'] / 1e6:g} M events, same files, "
                  f"{m['cpu']} x{m['logical_cpus']}", fontsize=10)
     ax.legend()
-    fig.text(0.01, 0.01, "single-threaded numpy vs C; the peer-written EVT3 file is read with "
-             "time_low_carry=True (its writer omits TIME_HIGH); the peer misreads the times of "
-             "our (conforming) EVT3 file", fontsize=7)
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    note = ("single-threaded numba kernels vs C; the peer-written EVT3 file is read with "
+            "time_low_carry=True (its writer omits TIME_HIGH); the peer misreads the times of "
+            "our (conforming) EVT3 file")
+    cs = results.get("cold_start", {})
+    if cs:
+        c, u = cs["cached"], cs["no_cache"]
+        note += (f"\nfresh process: import {1e3 * c['import_s']:.0f} ms, first EVT3 decode "
+                 f"{1e3 * c['first_decode_evt3_s']:.0f} ms with cached kernels, "
+                 f"{1e3 * u['first_decode_evt3_s']:.0f} ms compiling them (empty numba cache)")
+    fig.text(0.01, 0.01, note, fontsize=7)
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
     fig.savefig(path, dpi=120)
     plt.close(fig)
 

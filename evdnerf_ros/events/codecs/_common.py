@@ -1,7 +1,11 @@
 """Shared pieces of the event codecs: the Decoded record, byte-buffer handling, input
-validation and the streaming-decoder skeleton (left-over bytes, byte offsets, warnings).
+validation, the streaming-decoder skeleton (left-over bytes, byte offsets, warnings) and the
+numba kernel decorator.
 
-Everything here works on whole numpy arrays; no code path touches events one by one.
+The per-event work of the EVT codecs (decoding words, validating and encoding events) runs
+in numba-compiled kernels (`kernel`): plain loops compiled to machine code, called once per
+chunk. Kernels never raise: they report an error code and a position, and the Python side
+raises the error with its message and byte offset. Python code never loops over events.
 """
 
 from __future__ import annotations
@@ -9,6 +13,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from ...errors import FormatError, InputError
@@ -43,6 +48,32 @@ class Decoded:
         )
 
 
+def kernel(fn):
+    """`@numba.njit(cache=True, nogil=True)`: compile `fn` on its first call, once per machine.
+
+    The machine code is cached in the __pycache__ folder next to the module (numba falls back
+    to its user-wide cache folder where that is read-only), so later processes load it in
+    milliseconds. Where no cache folder is writable at all, numba refuses cache=True; the
+    kernel then compiles once per process instead of failing at import.
+    """
+    try:
+        return numba.njit(cache=True, nogil=True)(fn)
+    except RuntimeError:       # "cannot cache function ...: no locator available"
+        return numba.njit(nogil=True)(fn)
+
+
+def readonly(a: np.ndarray) -> np.ndarray:
+    """A read-only C-contiguous view (a copy only if `a` is not contiguous).
+
+    Kernels compile one specialisation per argument type, and numpy arrays differ in type
+    by writeability (e.g. np.frombuffer of bytes is read-only): passing every input as a
+    read-only view keeps it to one compilation per kernel.
+    """
+    v = np.ascontiguousarray(a).view()
+    v.flags.writeable = False
+    return v
+
+
 def as_u8(data, *, source: str) -> np.ndarray:
     """View bytes / bytearray / memoryview / numpy array as a flat uint8 array (no copy)."""
     if isinstance(data, np.ndarray):
@@ -74,10 +105,11 @@ def check_time_base(time_base_ns) -> int:
 
 def chunk_to_us(events, time_base_ns: int, encoding: str, *, index_offset: int = 0,
                 prev_t=None, max_x: int = 2048, max_y: int = 2048,
-                source: str = "events") -> np.ndarray:
+                source: str = "events", keep_us: bool = True) -> np.ndarray | None:
     """Validate one chunk of EVENT_DTYPE events for a microsecond format; return its times in
-    us after time_base_ns. `index_offset` / `prev_t` place the chunk inside a larger array
-    (for error messages and the sort check across chunk boundaries).
+    us after time_base_ns (None with keep_us=False: validation only, which is faster).
+    `index_offset` / `prev_t` place the chunk inside a larger array (for error messages and
+    the sort check across chunk boundaries).
 
     Raises InputError when times are unsorted, not a whole microsecond after time_base_ns or
     before it, polarity is not +1/-1, or a coordinate does not fit.
@@ -89,38 +121,96 @@ def chunk_to_us(events, time_base_ns: int, encoding: str, *, index_offset: int =
     if prev_t is not None and t[0] < prev_t:
         raise InputError(f"{source}: timestamps not sorted: event {index_offset} at t={int(t[0])} ns "
                          f"comes after t={int(prev_t)} ns; sort by t (np.argsort(t, kind='stable')) first")
-    back = t[1:] < t[:-1]
-    if back.any():
-        i = int(np.flatnonzero(back)[0]) + 1
+    us = np.empty(n if keep_us else 0, np.int64)
+    bad_sort, bad_p, bad_x, bad_y, before, bad_rem = _scan_us(
+        readonly(events), np.int64(time_base_ns), max_x, max_y, us)
+    if bad_sort >= 0:
+        i = bad_sort
         raise InputError(f"{source}: timestamps not sorted: event {index_offset + i} at t={int(t[i])} ns "
                          f"comes after t={int(t[i - 1])} ns; sort by t (np.argsort(t, kind='stable')) "
                          "first")
-    p = events["p"]
-    badp = (p != 1) & (p != -1)
-    if badp.any():
-        i = int(np.flatnonzero(badp)[0])
-        raise InputError(f"{source}: event {index_offset + i} has polarity {int(p[i])}; polarity must "
-                         "be +1 or -1")
-    for axis, limit in (("x", max_x), ("y", max_y)):
-        col = events[axis]
-        if int(col.max()) >= limit:
-            i = int(np.flatnonzero(col >= limit)[0])
-            raise InputError(f"{source}: event {index_offset + i} has {axis}={int(col[i])}, but "
-                             f"{encoding} carries {axis} < {limit}; crop or remap the coordinates first")
-    rel = t - np.int64(time_base_ns)
-    if rel[0] < 0:
+    if bad_p >= 0:
+        i = bad_p
+        raise InputError(f"{source}: event {index_offset + i} has polarity {int(events['p'][i])}; "
+                         "polarity must be +1 or -1")
+    for axis, limit, i in (("x", max_x, bad_x), ("y", max_y, bad_y)):
+        if i >= 0:
+            raise InputError(f"{source}: event {index_offset + i} has {axis}={int(events[axis][i])}, "
+                             f"but {encoding} carries {axis} < {limit}; crop or remap the "
+                             "coordinates first")
+    if before:
         raise InputError(f"{source}: event {index_offset} at t={int(t[0])} ns is before time_base_ns="
                          f"{time_base_ns}; {encoding} times are offsets from the time base, "
                          "choose a time base at or before the first event")
-    us, rem = np.divmod(rel, 1000)
-    if rem.any():
-        bad = np.flatnonzero(rem)
-        i = int(bad[0])
+    if bad_rem >= 0:
+        i = bad_rem
         raise InputError(
             f"{source}: event {index_offset + i} at t={int(t[i])} ns is not a whole microsecond after "
             f"time_base_ns={time_base_ns}; {encoding} carries microseconds, so round explicitly "
             "first, e.g. evdnerf_ros.events.codecs.quantize_to_us(events, time_base_ns=...)")
-    return us
+    return us if keep_us else None
+
+
+# whole-microsecond test without a division: 1000 = 8 * 125, and for odd 125 a 64-bit value r
+# is a multiple iff r * 125**-1 (mod 2**64) <= (2**64 - 1) // 125
+_INV125 = pow(125, -1, 1 << 64)
+_LIM125 = ((1 << 64) - 1) // 125
+
+
+@kernel
+def _scan_us(ev, base, max_x, max_y, us):
+    """One pass over EVENT_DTYPE records (at least one): us[i] = (t - base) // 1000 when `us`
+    has room, else validation only. Returns the first index (-1 if none) where time goes
+    backwards, polarity is not +-1, x >= max_x, y >= max_y, then whether the first event is
+    before `base`, and the first index where t - base is not a whole microsecond.
+
+    The pass only ORs problem flags together (branch-free); a second, exact pass that finds
+    the first index of each problem runs only when some flag is set, i.e. before an error.
+    """
+    n = ev.shape[0]
+    store = us.shape[0] == n
+    flags = 0
+    prev = ev[0].t
+    for i in range(n):
+        e = ev[i]
+        t = e.t
+        p = np.int64(e.p)
+        rel = t - base
+        r = np.uint64(rel)
+        if store:
+            q = np.int64(r // np.uint64(1000))               # exact for rel >= 0
+            us[i] = q
+            odd = rel != q * 1000
+        else:
+            odd = (((r & np.uint64(7)) != np.uint64(0))
+                   | ((r >> np.uint64(3)) * np.uint64(_INV125) > np.uint64(_LIM125)))
+        flags |= (np.int64(t < prev) | np.int64(p * p != 1) | np.int64(e.x >= max_x)
+                  | np.int64(e.y >= max_y) | np.int64(odd) | np.int64(rel < 0))
+        prev = t
+    before = ev[0].t - base < 0
+    bad_sort = bad_p = bad_x = bad_y = bad_rem = -1
+    if flags == 0:
+        return bad_sort, bad_p, bad_x, bad_y, before, bad_rem
+    prev = ev[0].t
+    for i in range(n):
+        e = ev[i]
+        t = e.t
+        if t < prev and bad_sort < 0:
+            bad_sort = i
+        prev = t
+        if e.p != 1 and e.p != -1 and bad_p < 0:
+            bad_p = i
+        if e.x >= max_x and bad_x < 0:
+            bad_x = i
+        if e.y >= max_y and bad_y < 0:
+            bad_y = i
+        rel = t - base
+        q = rel // 1000                                      # floor, like numpy
+        if store:
+            us[i] = q
+        if rel != q * 1000 and bad_rem < 0:
+            bad_rem = i
+    return bad_sort, bad_p, bad_x, bad_y, before, bad_rem
 
 
 def check_events_for_us(events, time_base_ns: int, encoding: str, *, chunk: int = 1 << 18,
@@ -134,7 +224,7 @@ def check_events_for_us(events, time_base_ns: int, encoding: str, *, chunk: int 
     for a in range(0, events.shape[0], chunk):
         part = events[a:a + chunk]
         chunk_to_us(part, time_base_ns, encoding, index_offset=a, prev_t=prev, max_x=max_x,
-                    max_y=max_y, source=source)
+                    max_y=max_y, source=source, keep_us=False)
         prev = part["t"][-1]
     return events
 
@@ -310,6 +400,30 @@ class StreamDecoderBase:
         raise NotImplementedError
 
 
+def run_decode_kernel(kern, words, out, state, report, trig_cap: int = 256):
+    """Run a word decoder kernel over `words`, resuming it whenever its trigger buffer fills.
+
+    `kern(w, start, out, k, trig, state, report) -> (next word, events written, triggers
+    written)` decodes from word `start`, writing events to out[k:] and triggers to `trig`,
+    and stops early at a trigger that does not fit (or, with report[0] set, at an error).
+    The trigger buffer comes from here rather than growing inside the kernel: an array
+    variable reassigned in a loop costs numba reference counting on every iteration.
+    Returns (events written, TRIGGER_DTYPE triggers).
+    """
+    w = readonly(words)
+    n = w.shape[0]
+    start = k = 0
+    parts = []
+    while True:
+        trig = np.empty(trig_cap, TRIGGER_DTYPE)
+        start, k, ntr = kern(w, start, out, k, trig, state, report)
+        if ntr:
+            parts.append(trig[:ntr])
+        if report[0] or start >= n:
+            return int(k), concat_triggers(parts)
+        trig_cap *= 4
+
+
 def concat_triggers(parts) -> np.ndarray:
     parts = [p for p in parts if p.size]
     if not parts:
@@ -317,14 +431,13 @@ def concat_triggers(parts) -> np.ndarray:
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
-_ARANGE = np.arange(1 << 20, dtype=np.int64)
 _PRIMED = False
 
 
 def _prime_allocator() -> None:
     """Let glibc's adaptive malloc settle on its largest recycling thresholds, once.
 
-    The block decoders allocate a few MB of numpy temporaries per block. glibc serves
+    The numpy block decoders (mono) allocate a few MB of numpy temporaries per block. glibc serves
     allocations above its mmap threshold with fresh mmaps, and returns freed heap tops above
     its trim threshold to the OS, so until a large buffer has been freed in the process every
     block pays page faults for its temporaries again (about a 3x slowdown on small inputs).
@@ -339,59 +452,16 @@ def _prime_allocator() -> None:
         del del_me
 
 
-def arange(n: int) -> np.ndarray:
-    """A cached 0..n-1 int64 range (read-only use)."""
-    global _ARANGE
-    if n > _ARANGE.shape[0]:
-        _ARANGE = np.arange(max(n, 2 * _ARANGE.shape[0]), dtype=np.int64)
-    return _ARANGE[:n]
-
-
-def time_high_fillers(high: np.ndarray, prev_high: int | None, spacing: int):
-    """Plan extra TIME_HIGH words so that a decoder can count every wrap of the time counter.
-
-    `high` holds the full (unwrapped) time-high values of the elements that emit a TIME_HIGH,
-    in stream order; `prev_high` is the value of the last TIME_HIGH already emitted (None at
-    the start of a stream, which behaves as a virtual TIME_HIGH of 0 that must be made real
-    when the first jump is large). Whenever the step from one TIME_HIGH to the next exceeds
-    `spacing` (a quarter of the counter range), intermediate TIME_HIGH values
-    prev + k * spacing are inserted so no step exceeds `spacing`.
-
-    Returns (counts, values): counts[i] filler words precede element i; values are the full
-    time-high values of all fillers, in stream order.
-    """
-    n = high.shape[0]
-    if n == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    prev = np.empty(n, np.int64)
-    prev[0] = 0 if prev_high is None else prev_high
-    prev[1:] = high[:-1]
-    gap = high - prev
-    counts = np.where(gap > spacing, (gap - 1) // spacing, 0)
-    kstart = np.ones(n, np.int64)
-    if prev_high is None and gap[0] > spacing:
-        counts[0] += 1          # make the virtual TIME_HIGH 0 real
-        kstart[0] = 0
-    total = int(counts.sum())
-    if total == 0:
-        return counts, np.zeros(0, np.int64)
-    nz = np.flatnonzero(counts)
-    owner = np.repeat(nz, counts[nz])
-    first = np.cumsum(counts) - counts
-    k = np.arange(total, dtype=np.int64) - first[owner] + kstart[owner]
-    return counts, prev[owner] + k * spacing
-
-
 ENCODE_CHUNK = 1 << 18
 
 
 class ChunkedEncoder:
     """Streaming encoder for the microsecond formats (EVT 3.0 / EVT 2.0).
 
-    Subclasses set NAME, MAX_TRIGGER_ID, WORD_DTYPE and `encode_words(us, x, y, p, tus, tid,
-    tval, prev_high, carry) -> (words, prev_high, carry)`. Large inputs are encoded in chunks
-    of ENCODE_CHUNK events (bounded temporaries); `carry` continues the word stream across
-    chunks of one call without repeating the header words a new call starts with.
+    Subclasses set NAME, MAX_TRIGGER_ID, WORD_DTYPE and `encode_words(us, events, tus,
+    triggers, prev_high, carry) -> (words, prev_high, carry)`. Large inputs are encoded in
+    chunks of ENCODE_CHUNK events (bounded temporaries); `carry` continues the word stream
+    across chunks of one call without repeating the header words a new call starts with.
     """
 
     NAME = "?"
@@ -404,7 +474,7 @@ class ChunkedEncoder:
         self._last_us = None       # last time written (us after the time base)
 
     @staticmethod
-    def encode_words(us, x, y, p, tus, tid, tval, prev_high, carry):  # pragma: no cover
+    def encode_words(us, events, tus, triggers, prev_high, carry):  # pragma: no cover
         raise NotImplementedError
 
     def encode(self, events, triggers=None) -> bytes:
@@ -436,13 +506,12 @@ class ChunkedEncoder:
                     firsts = [int(v[0]) for v in (us, tus[tsl]) if v.shape[0]]
                     check_not_before(min(firsts), self._last_us, f"{self.NAME} encoder")
                 words, self._prev_high, carry = self.encode_words(
-                    us, ev["x"], ev["y"], ev["p"], tus[tsl], triggers["id"][tsl],
-                    triggers["value"][tsl], self._prev_high, carry)
-                parts.append(words.astype(self.WORD_DTYPE, copy=False).tobytes())
+                    us, ev, tus[tsl], triggers[tsl], self._prev_high, carry)
+                parts.append(words.astype(self.WORD_DTYPE, copy=False))
                 if ev.shape[0]:
                     prev_t = ev["t"][-1]
             self._last_us = int(carry["us"])
         except BaseException:
             self._prev_high, self._last_us = saved
             raise
-        return b"".join(parts)
+        return b"".join(parts)           # one copy: join reads the arrays' buffers directly

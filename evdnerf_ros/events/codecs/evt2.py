@@ -6,7 +6,9 @@
     0xE OTHERS, 0xF CONTINUED and reserved types: skipped
 
 Time in microseconds = (time_high << 6) | ts_lsb: 34 bits, unwrapped by counting TIME_HIGH
-wrap-arounds (a drop of more than half the 28-bit range). Whole-array numpy throughout.
+wrap-arounds (a drop of more than half the 28-bit range). Decoding and encoding are numba
+kernels (see _common.kernel), one pass per chunk, with the stream state carried across
+feed() calls in a small int64 array.
 """
 
 from __future__ import annotations
@@ -14,9 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import FormatError
-from ..types import EVENT_DTYPE, TRIGGER_DTYPE
 from ._common import (
-    MAX_SENSOR_US, ChunkedEncoder, StreamDecoderBase, arange, concat_triggers, time_high_fillers,
+    MAX_SENSOR_US, ChunkedEncoder, StreamDecoderBase, kernel, readonly, run_decode_kernel,
 )
 
 NAME = "EVT 2.0"
@@ -24,7 +25,25 @@ _TH_BITS = 28
 _TH_MASK = (1 << _TH_BITS) - 1
 _HALF = 1 << (_TH_BITS - 1)
 _FILL_SPACING = 1 << (_TH_BITS - 2)
-BLOCK_WORDS = 1 << 18
+_MAX_HIGH = MAX_SENSOR_US >> 6
+_INVALID = np.iinfo(np.int64).min
+_MAX_I64 = np.iinfo(np.int64).max
+
+# decoder state slots (int64 array kept between feeds)
+_S_HIGH = 0        # unwrapped time_high (units of 64 us); -1 before the first TIME_HIGH
+_S_LAST_EV = 1     # ns time of the last decoded event (order check)
+_S_LAST_TR = 2     # ns time of the last decoded trigger
+_S_BASE = 3        # time_base_ns
+_N_STATE = 4
+
+# kernel report slots
+_R_ERR, _R_AT, _R_A, _R_B, _R_DROP_EV, _R_DROP_TR = range(6)
+_N_REPORT = 6
+_E_HIGH_BACK = 1   # TIME_HIGH drops by at most half its range: A = new, B = previous
+_E_OVERFLOW = 2    # time beyond MAX_SENSOR_US
+_E_EVENT_BACK = 3  # event before the previous event: A = time, B = previous (ns)
+_E_TRIG_BACK = 4   # trigger before the previous trigger: A = time, B = previous (ns)
+_E_OUT_FULL = 5    # output array shorter than the word count (caller bug)
 
 
 class Evt2Decoder(StreamDecoderBase):
@@ -38,9 +57,7 @@ class Evt2Decoder(StreamDecoderBase):
 
     def __init__(self, *, time_base_ns: int = 0, source: str = "<stream>", offset: int = 0):
         super().__init__(time_base_ns=time_base_ns, source=source, offset=offset)
-        self._high = -1        # unwrapped time_high (units of 64 us); -1 before the first TIME_HIGH
-        self._last_t = None    # ns time of the last decoded event (order check across blocks)
-        self._last_tr = None
+        self._state = np.array([-1, _INVALID, _INVALID, self.time_base_ns], np.int64)
 
     def _count(self, words) -> int:
         # at most one event per word; the few control words leave untouched (never paged-in)
@@ -48,158 +65,122 @@ class Evt2Decoder(StreamDecoderBase):
         return int(words.shape[0])
 
     def _decode_into(self, words, offset, out):
-        pos = 0
-        trigs = []
-        d_ev = d_tr = 0
-        for s in range(0, words.shape[0], BLOCK_WORDS):
-            k, tr, de, dt = self._block(words[s:s + BLOCK_WORDS], offset + 4 * s, out[pos:])
-            pos += k
-            d_ev += de
-            d_tr += dt
-            if tr.size:
-                trigs.append(tr)
-        return pos, concat_triggers(trigs), d_ev, d_tr
+        rep = np.zeros(_N_REPORT, np.int64)
+        k, trig = run_decode_kernel(_decode, words, out, self._state, rep)
+        if rep[_R_ERR]:
+            self._raise(rep, words, offset)
+        return k, trig, int(rep[_R_DROP_EV]), int(rep[_R_DROP_TR])
 
-    def _block(self, w, off, out):
-        is_ne = w >= _CTRL                           # not a CD event
-        ne_pos = np.flatnonzero(is_ne)               # few in EVT 2.0
-        k = ne_pos.shape[0]
-        r = w.shape[0] - k
-        nw = w.take(ne_pos)
-        nty = nw >> 28
-        th_sel = np.flatnonzero(nty == 8)
-        kh = th_sel.shape[0]
+    def _raise(self, rep, w, off):
+        code, wi, a, b = (int(v) for v in rep[:4])
+        word = int(w[wi])
+        if code == _E_HIGH_BACK:
+            msg = (f"TIME_HIGH word 0x{word:08x} sets time >> 6 to {a} after {b}: time goes "
+                   "backwards (a drop of at most half the 28-bit range is not a wrap-around); the "
+                   "stream is corrupt or not EVT 2.0")
+        elif code == _E_OVERFLOW:
+            msg = "time wraps around so often that nanoseconds overflow; the stream is corrupt"
+        elif code in (_E_EVENT_BACK, _E_TRIG_BACK):
+            what = "event" if code == _E_EVENT_BACK else "trigger"
+            base = self.time_base_ns
+            msg = (f"{what} time goes backwards from {b - base} ns to {a - base} ns after the time "
+                   f"base (word 0x{word:08x}); EVT 2.0 {what}s must come in time order; the stream "
+                   "is corrupt or not EVT 2.0")
+        else:
+            raise ValueError("EVT 2.0 decoder: output array shorter than count_events()")
+        raise FormatError(msg, source=self.source, offset=off + 4 * wi)
 
-        h0 = self._high
-        hext = np.empty(kh + 1, np.int64)
-        hext[0] = h0
-        if kh:
-            hv = (nw.take(th_sel) & _TH_MASK).astype(np.int64)
-            prev = np.empty_like(hv)
-            prev[0] = (h0 & _TH_MASK) if h0 >= 0 else hv[0]
-            prev[1:] = hv[:-1]
-            dec = prev - hv
-            wrap = dec > _HALF
-            back = (dec > 0) & ~wrap
-            if back.any():
-                i = int(np.flatnonzero(back)[0])
-                wi = int(ne_pos[th_sel[i]])
-                raise FormatError(
-                    f"TIME_HIGH word 0x{int(w[wi]):08x} sets time >> 6 to {int(hv[i])} after "
-                    f"{int(prev[i])}: time goes backwards (a drop of at most half the 28-bit range "
-                    "is not a wrap-around); the stream is corrupt or not EVT 2.0",
-                    source=self.source, offset=off + 4 * wi)
-            q = np.cumsum(wrap)
-            if h0 >= 0:
-                q += h0 >> _TH_BITS
-            hext[1:] = (q << _TH_BITS) | hv
-            if hext[-1] > MAX_SENSOR_US >> 6:
-                raise FormatError("time wraps around so often that nanoseconds overflow; the stream "
-                                  "is corrupt", source=self.source,
-                                  offset=off + 4 * int(ne_pos[th_sel[-1]]))
-            self._high = int(hext[-1])
-        base = self.time_base_ns
-        hns = hext * 64000
-        hns += base
-        if h0 < 0:
-            hns[0] = _INVALID
 
-        # triggers
-        d_tr = 0
-        trig = _NO_TRIGGERS
-        if kh != k:
-            tr_sel = np.flatnonzero(nty == 10)
-            if tr_sel.size:
-                trw = nw.take(tr_sel)
-                tb = hns.take(np.searchsorted(th_sel, tr_sel))
-                ok = tb != _INVALID
-                if not ok.all():
-                    d_tr = int(tr_sel.size - np.count_nonzero(ok))
-                    trw, tb = trw[ok], tb[ok]
-                trig = np.empty(trw.shape[0], TRIGGER_DTYPE)
-                trig["t"] = tb + ((trw >> 22) & 63).astype(np.int64) * 1000
-                trig["id"] = (trw >> 8) & 0x1F
-                trig["value"] = trw & 1
-                tr_pos = ne_pos.take(tr_sel)[ok] if d_tr else ne_pos.take(tr_sel)
-                self._last_tr = self._check_order(trig["t"], self._last_tr, lambda: tr_pos, w, off,
-                                                  "trigger")
-        if r == 0:
-            return 0, trig, 0, d_tr
+@kernel
+def _decode(w, start, out, k, trig, st, rep):
+    """Decode EVT 2.0 words w[start:] into out[k:] (EVENT_DTYPE, a slot per word) and
+    `trig` (TRIGGER_DTYPE).
 
-        ew = w[~is_ne] if k else w
-        # time of lsb 0 for each event: the TIME_HIGH period it falls in
-        if kh * 8 <= r:
-            counts = np.empty(kh + 1, np.int64)
-            if kh:
-                c = ne_pos.take(th_sel) - th_sel       # events before each TIME_HIGH
-                counts[0] = c[0]
-                np.subtract(c[1:], c[:-1], out=counts[1:-1])
-                counts[-1] = r - c[-1]
+    Updates the state array `st` and the report `rep` (error code, word index and details,
+    dropped counts); returns (next word, events written, triggers written). Stops at the
+    first error, or before a trigger that does not fit in `trig`.
+    """
+    high = st[_S_HIGH]
+    last_ev = st[_S_LAST_EV]
+    last_tr = st[_S_LAST_TR]
+    base = st[_S_BASE]
+    hns = base + 64000 * high if high >= 0 else _INVALID
+    d_ev = rep[_R_DROP_EV]
+    d_tr = rep[_R_DROP_TR]
+    n_tr = trig.shape[0]
+    ntr = 0
+    err = 0
+    at = 0
+    ea = 0
+    eb = 0
+    i = start
+    n = w.shape[0]
+    if out.shape[0] - k < n - start:                     # at most one event per word
+        rep[_R_ERR] = _E_OUT_FULL
+        return i, k, ntr
+    while i < n:
+        v = np.int64(w[i])
+        i += 1
+        ty = v >> 28
+        if ty < 2:                                       # CD_OFF / CD_ON
+            if high < 0:
+                d_ev += 1
+                continue
+            t = hns + ((v >> 22) & 63) * 1000
+            if t < last_ev:
+                err, at, ea, eb = _E_EVENT_BACK, i - 1, t, last_ev
+                break
+            last_ev = t
+            e = out[k]
+            e.t = t
+            e.x = (v >> 11) & 0x7FF
+            e.y = v & 0x7FF
+            e.p = 2 * ty - 1
+            k += 1
+        elif ty == 8:                                    # TIME_HIGH
+            hv = v & _TH_MASK
+            if high >= 0:
+                prev = high & _TH_MASK
+                d = prev - hv
+                if d > _HALF:
+                    high += 1 << _TH_BITS                # wrap-around
+                elif d > 0:
+                    err, at, ea, eb = _E_HIGH_BACK, i - 1, hv, prev
+                    break
+                high = (high & ~_TH_MASK) | hv
             else:
-                counts[0] = r
-            t = np.repeat(hns, counts)
-        else:                                          # sparse events: rank by cumulative count
-            is_th = np.zeros(w.shape[0], bool)
-            is_th[ne_pos.take(th_sel)] = True
-            t = hns.take(np.cumsum(is_th)[~is_ne])
-        d_ev = 0
-        if h0 < 0:
-            bad = int(np.count_nonzero(t == _INVALID))
-            if bad:
-                d_ev = bad
-                t, ew = t[bad:], ew[bad:]
-                if ew.size == 0:
-                    return 0, trig, d_ev, d_tr
-        m = ew.shape[0]
-        o = out[:m]
-        scratch = ew >> 22                            # ts_lsb -> ns, added to its period's base
-        scratch &= 63
-        scratch *= 1000
-        t += scratch
-        if k:
-            ev_pos = lambda: np.flatnonzero(~is_ne)[d_ev:]
-        else:
-            ev_pos = lambda: arange(r)[d_ev:]
-        self._last_t = self._check_order(t, self._last_t, ev_pos, w, off, "event")
-        o["t"] = t
-        # x (bits 21-11) and y (bits 10-0) in one uint32 store at record offset 8
-        np.bitwise_and(ew, np.uint32(0x3FFFFF), out=scratch)
-        xy = scratch << 16
-        scratch >>= 11
-        xy |= scratch
-        xy &= np.uint32(0x07FF07FF)
-        np.ndarray((m,), "<u4", buffer=o, offset=8, strides=(o.strides[0],))[...] = xy
-        np.right_shift(ew, 27, out=scratch)           # polarity bit 28 -> bit 1
-        scratch &= 2
-        np.subtract(scratch, 1, out=o["p"], casting="unsafe")
-        return m, trig, d_ev, d_tr
-
-    def _check_order(self, t, last, positions, w, off, what):
-        """Raise FormatError at the first word whose time is before the one preceding it;
-        return the last time."""
-        if t.size == 0:
-            return last
-        if last is not None and t[0] < last:
-            i, prev = 0, last
-        elif (t[1:] < t[:-1]).any():
-            i = int(np.flatnonzero(t[1:] < t[:-1])[0]) + 1
-            prev = int(t[i - 1])
-        else:
-            return int(t[-1])
-        wi = int(positions()[i])
-        raise FormatError(
-            f"{what} time goes backwards from {prev - self.time_base_ns} ns to "
-            f"{int(t[i]) - self.time_base_ns} ns after the time base (word 0x{int(w[wi]):08x}); "
-            f"EVT 2.0 {what}s must come in time order; the stream is corrupt or not EVT 2.0",
-            source=self.source, offset=off + 4 * wi)
-
-
-_CTRL = np.uint32(0x2 << 28)
-# the decoder stores x and y with one uint32 write at byte offset 8 of each record
-assert EVENT_DTYPE.fields["x"][1] == 8 and EVENT_DTYPE.fields["y"][1] == 10 \
-    and EVENT_DTYPE.fields["x"][0] == np.dtype("<u2") == EVENT_DTYPE.fields["y"][0]
-_INVALID = np.iinfo(np.int64).min
-_NO_TRIGGERS = np.empty(0, TRIGGER_DTYPE)
+                high = hv
+            if high > _MAX_HIGH:
+                err, at = _E_OVERFLOW, i - 1
+                break
+            hns = base + 64000 * high
+        elif ty == 10:                                   # EXT_TRIGGER
+            if high < 0:
+                d_tr += 1
+                continue
+            if ntr == n_tr:                              # buffer full: resume here later
+                i -= 1
+                break
+            t = hns + ((v >> 22) & 63) * 1000
+            if t < last_tr:
+                err, at, ea, eb = _E_TRIG_BACK, i - 1, t, last_tr
+                break
+            last_tr = t
+            r = trig[ntr]
+            r.t = t
+            r.id = (v >> 8) & 0x1F
+            r.value = v & 1
+            ntr += 1
+    st[_S_HIGH] = high
+    st[_S_LAST_EV] = last_ev
+    st[_S_LAST_TR] = last_tr
+    rep[_R_ERR] = err
+    rep[_R_AT] = at
+    rep[_R_A] = ea
+    rep[_R_B] = eb
+    rep[_R_DROP_EV] = d_ev
+    rep[_R_DROP_TR] = d_tr
+    return i, k, ntr
 
 
 class Evt2Encoder(ChunkedEncoder):
@@ -211,51 +192,85 @@ class Evt2Encoder(ChunkedEncoder):
     WORD_DTYPE = np.dtype("<u4")
 
     @staticmethod
-    def encode_words(us, x, y, p, tus, tid, tval, prev_high, carry):
-        return encode_words(us, x, y, p, tus, tid, tval, prev_high, carry)
+    def encode_words(us, events, tus, triggers, prev_high, carry):
+        return encode_words(us, events, tus, triggers, prev_high, carry)
 
 
-def encode_words(us, x, y, p, tus, tid, tval, prev_high, carry=None):
-    """EVT 2.0 words for sorted events and triggers; see evt3.encode_words for prev_high /
-    carry. Returns (uint32 words, new prev_high, new carry)."""
+def encode_words(us, events, tus, triggers, prev_high, carry=None):
+    """EVT 2.0 words for sorted events and triggers; see evt3.encode_words for the arguments,
+    prev_high and carry. Returns (uint32 words, new prev_high, new carry)."""
+    st = np.array([-1 if prev_high is None else prev_high,
+                   -1 if carry is None else carry["us"]], np.int64)
+    # numpy allocates the output (huge pages for big buffers: fewer page faults than numba's
+    # allocator): 2 words per event or trigger at most, plus the filler TIME_HIGH words,
+    # which step from prev_high (0 if none) towards the last time >> 6 at most _FILL_SPACING
+    # apart (see evt3._word_bound)
+    last = max(int(us[-1]) if us.shape[0] else 0, int(tus[-1]) if tus.shape[0] else 0)
+    prev = prev_high if prev_high is not None else 0
+    buf = np.empty(2 * (us.shape[0] + tus.shape[0]) + max((last >> 6) - prev, 0) // _FILL_SPACING
+                   + 16, np.uint32)
+    nw = _encode(readonly(us), readonly(events), readonly(tus), readonly(triggers), st, buf)
+    if nw < 0:   # pragma: no cover - the size above is an upper bound
+        raise RuntimeError("EVT 2.0 encoder: output bound too small")
+    buf.resize(nw, refcheck=False)       # give back the unused tail (realloc, no copy)
+    return buf, None if st[0] < 0 else int(st[0]), {"us": int(st[1])}
+
+
+@kernel
+def _encode(us, ev, tus, trig, st, buf):
+    """EVT 2.0 words for one chunk; st = [prev_high, last time] (-1: none), updated.
+
+    Each event or trigger (triggers after the events of their microsecond) is one word,
+    preceded by a TIME_HIGH when time >> 6 changes, itself preceded by filler TIME_HIGH
+    words so that no two TIME_HIGH values are more than _FILL_SPACING apart (counting from
+    0 when prev_high is -1). Writes to `buf`; returns the number of words written (-1 if
+    `buf` is too short).
+    """
+    cap = buf.shape[0]
     n = us.shape[0]
     ntr = tus.shape[0]
-    ev_words = (((p > 0).astype(np.uint32) << 28) | ((us & 63).astype(np.uint32) << 22)
-                | (x.astype(np.uint32) << 11) | y.astype(np.uint32))
-    if ntr:
-        ins = np.searchsorted(us, tus, side="right")
-        pos_tr = ins + np.arange(ntr)
-        pos_ev = np.arange(n) + np.searchsorted(ins, np.arange(n), side="right")
-        M = n + ntr
-        m_us = np.empty(M, np.int64)
-        m_us[pos_ev] = us
-        m_us[pos_tr] = tus
-        body = np.empty(M, np.uint32)
-        body[pos_ev] = ev_words
-        body[pos_tr] = ((np.uint32(0xA) << 28) | ((tus & 63).astype(np.uint32) << 22)
-                        | (tid.astype(np.uint32) << 8) | tval.astype(np.uint32))
-    else:
-        M = n
-        m_us = us
-        body = ev_words
-    hi = m_us >> 6
-    hchg = np.empty(M, bool)
-    hchg[0] = carry is None or hi[0] != carry["us"] >> 6
-    np.not_equal(hi[1:], hi[:-1], out=hchg[1:])
-    th_idx = np.flatnonzero(hchg)
-    fcounts, fvals = time_high_fillers(hi[th_idx], prev_high, _FILL_SPACING)
-    cm = np.ones(M, np.int64)
-    cm[th_idx] += 1 + fcounts
-    end = np.cumsum(cm)
-    out = np.empty(int(end[-1]), np.uint32)
-    out[end - 1] = body
-    start = end - cm
-    out[start[th_idx] + fcounts] = (np.uint32(0x8) << 28) | (hi[th_idx] & _TH_MASK).astype(np.uint32)
-    if fvals.size:
-        nzi = np.flatnonzero(fcounts)
-        owner_start = np.repeat(start[th_idx[nzi]], fcounts[nzi])
-        first = np.repeat(np.cumsum(fcounts[nzi]) - fcounts[nzi], fcounts[nzi])
-        fpos = owner_start + (np.arange(fvals.size) - first)
-        out[fpos] = (np.uint32(0x8) << 28) | (fvals & _TH_MASK).astype(np.uint32)
-    last_high = int(hi[th_idx[-1]]) if th_idx.size else prev_high
-    return out, last_high, {"us": int(m_us[-1])}
+    pos = 0
+    prev_high = st[0]
+    cur_hi = st[1] >> 6 if st[1] >= 0 else -1
+    last = st[1]
+    i = 0
+    ti = 0
+    while i < n or ti < ntr:
+        if ti < ntr and (i >= n or tus[ti] < us[i]):     # a trigger comes next
+            u = tus[ti]
+            word = ((0xA << 28) | ((u & 63) << 22) | (np.int64(trig[ti].id) << 8)
+                    | trig[ti].value)
+            ti += 1
+        else:
+            u = us[i]
+            e = ev[i]
+            word = ((np.int64(e.p > 0) << 28) | ((u & 63) << 22) | (np.int64(e.x) << 11)
+                    | np.int64(e.y))
+            i += 1
+        hi = u >> 6
+        if hi != cur_hi:
+            prev = prev_high if prev_high >= 0 else 0
+            gap = hi - prev
+            k0 = 1
+            k1 = 0
+            if gap > _FILL_SPACING:
+                k1 = (gap - 1) // _FILL_SPACING
+                if prev_high < 0:
+                    k0 = 0                               # make the virtual TIME_HIGH 0 real
+            if pos + (k1 - k0 + 1) + 2 > cap:
+                return -1
+            for k in range(k0, k1 + 1):
+                buf[pos] = (8 << 28) | ((prev + k * _FILL_SPACING) & _TH_MASK)
+                pos += 1
+            buf[pos] = (8 << 28) | (hi & _TH_MASK)
+            pos += 1
+            prev_high = hi
+            cur_hi = hi
+        elif pos >= cap:
+            return -1
+        buf[pos] = word
+        pos += 1
+        last = u
+    st[0] = prev_high
+    st[1] = last
+    return pos

@@ -13,37 +13,60 @@
 Time is 24 bits of microseconds and wraps every 2**24 us; the decoder counts wraps (a
 TIME_HIGH that drops by more than half its range) and rejects time going backwards: a
 TIME_HIGH that drops by less, a TIME_LOW below the previous one with no TIME_HIGH in
-between, or a time word that gives the following events an earlier time than earlier events.
+between, or a time word that gives the following event words an earlier time than earlier
+event words got.
 
-Everything below is whole-array numpy, block by block. Decoder: the positions of the event
-words (ADDR_X / VECT_*) and of all other words come from np.flatnonzero; the state after
-every non-event word (time, row, vector base) is forward-filled over the non-event words with
-cumulative sums and np.take, and each event word picks its state by its rank among them
-(position minus index); vector masks expand through np.unpackbits + np.flatnonzero. Encoder:
-events are grouped into runs and 12-wide windows with boundary masks, and every word is
-scattered to a position computed by a cumulative sum of per-item word counts.
+Decoding and encoding are numba kernels (see _common.kernel), one pass over the words or
+events of a chunk each; the decoder's state (time, row, vector base, last times) lives in a
+small int64 array that carries across feed() calls, so any chunking decodes identically.
+Events that come before the stream's first TIME_HIGH / ADDR_Y / VECT_BASE_X are dropped and
+counted (the caller warns).
 """
 
 from __future__ import annotations
 
 import numpy as np
+from numba.cpython.unsafe.numbers import trailing_zeros
 
 from ...errors import FormatError
-from ..types import TRIGGER_DTYPE
 from ._common import (
-    MAX_SENSOR_US, ChunkedEncoder, StreamDecoderBase, arange, concat_triggers, time_high_fillers,
+    MAX_SENSOR_US, ChunkedEncoder, StreamDecoderBase, kernel, readonly, run_decode_kernel,
 )
 
 NAME = "EVT 3.0"
-_INVALID_T = np.iinfo(np.int64).min      # time of events seen before the first TIME_HIGH
-_NO_Y = 0xFFFF                           # row of events seen before the first ADDR_Y
+_INVALID_T = np.iinfo(np.int64).min      # ns time meaning "no valid time yet"
+_MAX_I64 = np.iinfo(np.int64).max
 _HALF = 2048                             # half the TIME_HIGH range (12 bits)
 _FILL_SPACING = 1024                     # encoder: at most 2**22 us between TIME_HIGH words
 
-# Internal block size (words): big enough to amortise per-call overhead, small enough to
-# keep temporaries modest (measured best on the benchmark machine).
-BLOCK_WORDS = 1 << 18
-_COUNT_WORDS = 1 << 21
+# decoder state slots (an int64 array the decoder keeps between feeds)
+_S_TIME = 0        # current time in us (unwrapped); -1 before the first TIME_HIGH
+_S_Y = 1           # current row; -1 before the first ADDR_Y
+_S_BX = 2          # vector base x; -1 before the first VECT_BASE_X
+_S_VP = 3          # vector polarity bit
+_S_LAST_EV = 4     # ns time of the last event word with a valid time (order check)
+_S_LAST_TR = 5     # ns time of the last trigger decoded
+_S_BASE = 6        # time_base_ns
+_S_CARRY = 7       # time_low_carry (0 / 1)
+_N_STATE = 8
+
+# kernel report slots
+_R_ERR = 0         # error code (_E_*), 0 = none
+_R_AT = 1          # index of the word the error is reported at (-1: before this chunk)
+_R_A = 2           # error details
+_R_B = 3
+_R_DROP_EV = 4     # events dropped for lack of a valid time / row / vector base
+_R_DROP_TR = 5     # triggers dropped for lack of a valid time
+_R_TIME_WORD = 6   # index of the chunk's last time word (-1: none)
+_N_REPORT = 7
+
+_E_HIGH_BACK = 1   # TIME_HIGH drops by at most half its range: A = new, B = previous bits
+_E_LOW_BACK = 2    # TIME_LOW below the previous low bits: A = new, B = previous
+_E_OVERFLOW = 3    # time beyond MAX_SENSOR_US
+_E_EVENT_BACK = 4  # event words get an earlier time than before: A = time, B = previous (ns)
+_E_TRIG_BACK = 5   # trigger earlier than the previous trigger: A = time, B = previous (ns)
+_E_X_RANGE = 6     # vector event beyond x = 2047: A = x
+_E_OUT_FULL = 7    # output array shorter than the count (caller bug)
 
 
 # --------------------------------------------------------------------------------------
@@ -69,388 +92,240 @@ class Evt3Decoder(StreamDecoderBase):
                  time_low_carry: bool = False):
         super().__init__(time_base_ns=time_base_ns, source=source, offset=offset)
         self.time_low_carry = bool(time_low_carry)
-        self._time = -1      # current time in us (unwrapped); -1 before the first TIME_HIGH
-        self._y = -1         # current row; -1 before the first ADDR_Y
-        self._bx = -1        # vector base x; -1 before the first VECT_BASE_X
-        self._vp = 0         # vector polarity bit
-        self._last_ev = _INVALID_T   # ns time of the last event decoded (order check)
-        self._last_tr = _INVALID_T   # ns time of the last trigger decoded
+        st = np.zeros(_N_STATE, np.int64)
+        st[[_S_TIME, _S_Y, _S_BX]] = -1
+        st[[_S_LAST_EV, _S_LAST_TR]] = _INVALID_T
+        st[_S_BASE] = self.time_base_ns
+        st[_S_CARRY] = self.time_low_carry
+        self._state = st
         self._time_off = None        # byte offset of the word that set the current time
 
-    # ---- counting (stateless upper bound) -----------------------------------------------
     def _count(self, words) -> int:
-        total = 0
-        for s in range(0, words.shape[0], _COUNT_WORDS):
-            w = words[s:s + _COUNT_WORDS]
-            ty = w >> 12
-            total += int(np.count_nonzero(ty == 2))
-            vec = (ty & 14) == 4
-            if vec.any():
-                vw = w[vec]
-                masks = vw & np.where(vw < 0x5000, np.uint16(0xFFF), np.uint16(0xFF))
-                total += int(np.bitwise_count(masks).sum(dtype=np.int64))
-        return total
+        return int(_count_events(readonly(words)))
 
     def _decode_into(self, words, offset, out):
-        pos = 0
-        trigs = []
-        d_ev = d_tr = 0
-        for s in range(0, words.shape[0], BLOCK_WORDS):
-            k, tr, de, dt = self._block(words[s:s + BLOCK_WORDS], offset + 2 * s, out[pos:])
-            pos += k
-            d_ev += de
-            d_tr += dt
-            if tr.size:
-                trigs.append(tr)
-        return pos, concat_triggers(trigs), d_ev, d_tr
+        rep = np.zeros(_N_REPORT, np.int64)
+        rep[_R_TIME_WORD] = -1
+        k, trig = run_decode_kernel(_decode, words, out, self._state, rep)
+        if rep[_R_ERR]:
+            self._raise(rep, words, offset)
+        if rep[_R_TIME_WORD] >= 0:
+            self._time_off = offset + 2 * int(rep[_R_TIME_WORD])
+        return k, trig, int(rep[_R_DROP_EV]), int(rep[_R_DROP_TR])
 
-    # ---- one block of whole words ----------------------------------------------------------
-    def _block(self, w, off, out):
-        ty = w >> 12
-        is_ev = ty == 2
-        vec = (ty & 14) == 4                 # VECT_12 / VECT_8
-        has_vec = bool(vec.any())
-        if has_vec:
-            is_ev |= vec
-        ev_pos = np.flatnonzero(is_ev)
-        ne_pos = np.flatnonzero(~is_ev)      # every other word: time, y, vector base, ...
-        r = ev_pos.shape[0]
-        k = ne_pos.shape[0]
-        nw = w.take(ne_pos)
-        nty = nw >> 12
-
-        # time after each non-event word ----------------------------------------------------
-        t0 = self._time
-        is_t = (nty == 6) | (nty == 8)
-        t_sel = np.flatnonzero(is_t)
-        kt = t_sel.shape[0]
-        tns_ext = np.empty(kt + 1, np.int64)
-        tns_ext[0] = self.time_base_ns + 1000 * t0 if t0 >= 0 else _INVALID_T
-        prev_time_off = self._time_off
-        if kt:
-            tcur = self._time_table(nw.take(t_sel), t0, w, ne_pos, t_sel, off)
-            if tcur[-1] > MAX_SENSOR_US:
-                raise FormatError(f"time passes {MAX_SENSOR_US} us after so many TIME_HIGH wrap-arounds "
-                                  "that nanoseconds overflow; the stream is corrupt",
-                                  source=self.source, offset=off + 2 * int(ne_pos[t_sel[-1]]))
-            self._time = int(tcur[-1])
-            self._time_off = off + 2 * int(ne_pos[t_sel[-1]])
-            if t0 >= 0 or tcur[0] >= 0:
-                np.multiply(tcur, 1000, out=tns_ext[1:])
-                tns_ext[1:] += self.time_base_ns
-            else:
-                tns_ext[1:] = np.where(tcur >= 0, self.time_base_ns + 1000 * tcur, _INVALID_T)
-        if r and (tns_ext[0] < self._last_ev or (kt and (tns_ext[1:] < tns_ext[:-1]).any())):
-            # a TIME_HIGH reset (e.g. a repeated TIME_HIGH) may dip the time for a moment; only
-            # the times that events actually get must not go backwards
-            self._check_event_times(tns_ext, ne_pos, t_sel, r, w, off, prev_time_off)
-        ct_ext = np.empty(k + 1, np.int64)
-        ct_ext[0] = 0
-        np.cumsum(is_t, out=ct_ext[1:])
-        t_ne = tns_ext.take(ct_ext)          # t_ne[j]: time before non-event word j
-
-        # row after each non-event word -------------------------------------------------------
-        y0 = self._y if self._y >= 0 else _NO_Y
-        is_y = nty == 0
-        y_sel = np.flatnonzero(is_y)
-        ky = y_sel.shape[0]
-        y_ext = np.empty(ky + 1, np.uint16)
-        y_ext[0] = y0
-        np.bitwise_and(nw.take(y_sel), 0x7FF, out=y_ext[1:])
-        if ky:
-            self._y = int(y_ext[-1])
-        if kt + ky == k:                     # only time and y words: y count = index - time count
-            cy_ext = arange(k + 1) - ct_ext
-        else:
-            cy_ext = np.empty(k + 1, np.int64)
-            cy_ext[0] = 0
-            np.cumsum(is_y, out=cy_ext[1:])
-        y_ne = y_ext.take(cy_ext)
-
-        # triggers ------------------------------------------------------------------------
-        d_tr = 0
-        trig = _NO_TRIGGERS
-        if kt + ky != k:
-            tr_sel = np.flatnonzero(nty == 10)
-            if tr_sel.size:
-                tt = t_ne.take(tr_sel)
-                trw = nw.take(tr_sel)
-                ok = tt != _INVALID_T
-                if not ok.all():
-                    d_tr = int(tr_sel.size - np.count_nonzero(ok))
-                    tt, trw = tt[ok], trw[ok]
-                if tt.size:
-                    prev = np.empty_like(tt)
-                    prev[0] = self._last_tr
-                    prev[1:] = tt[:-1]
-                    back = tt < prev
-                    if back.any():
-                        i = int(np.flatnonzero(back)[0])
-                        wi = int(ne_pos.take(tr_sel[ok] if d_tr else tr_sel)[i])
-                        raise FormatError(
-                            f"EXT_TRIGGER word 0x{int(w[wi]):04x} gets time {int(tt[i])} ns, before "
-                            f"the previous trigger at {int(prev[i])} ns; the time went backwards",
-                            source=self.source, offset=off + 2 * wi)
-                    self._last_tr = int(tt[-1])
-                trig = np.empty(tt.shape[0], TRIGGER_DTYPE)
-                trig["t"] = tt
-                trig["id"] = (trw >> 8) & 0xF
-                trig["value"] = trw & 1
-
-        if r == 0:
-            if kt + ky != k:
-                self._vector_state(nty, nw, ne_pos, _ZERO1, False)
-            return 0, trig, 0, d_tr
-
-        rank = ev_pos - arange(r)            # non-event words before each event word
-        t_row = t_ne.take(rank)
-        y_row = y_ne.take(rank)
-        maybe_invalid = t0 < 0 or y0 == _NO_Y
-
-        if not has_vec:
-            xw = w.take(ev_pos)
-            dropped = 0
-            if maybe_invalid:
-                ok = (t_row != _INVALID_T) & (y_row != _NO_Y)
-                if not ok.all():
-                    xw, t_row, y_row = xw[ok], t_row[ok], y_row[ok]
-                    dropped = r - xw.shape[0]
-            if kt + ky != k:
-                self._vector_state(nty, nw, ne_pos, _ZERO1, False)
-            m = xw.shape[0]
-            if m:
-                self._last_ev = int(t_row[-1])
-            o = out[:m]
-            o["t"] = t_row
-            o["y"] = y_row
-            np.bitwise_and(xw, 0x7FF, out=o["x"])
-            pb = xw >> 10                    # polarity bit 11 -> bit 1
-            pb &= 2
-            np.subtract(pb, 1, out=o["p"], casting="unsafe")
-            return m, trig, dropped, d_tr
-
-        # vector path --------------------------------------------------------------------------
-        ew = w.take(ev_pos)
-        ety = (ew >> 12).astype(np.int16)    # 2 ADDR_X, 4 VECT_12, 5 VECT_8
-        is_addr = ety == 2
-        not_addr = ~is_addr
-        v8 = ety & 1                         # 1 for VECT_8
-        inc = 12 - 4 * v8                    # base x advance: 12 or 8 (0 for ADDR_X)
-        inc *= not_addr
-        ci_ext = np.empty(r + 1, np.int64)
-        ci_ext[0] = 0
-        np.cumsum(inc, out=ci_ext[1:])
-        packed_ne, bx_known = self._vector_state(nty, nw, ne_pos, ci_ext, True)
-        # blends below use arithmetic with 0/1 masks: much cheaper than np.where / copyto
-        ia = is_addr.view(np.uint8)
-        na = not_addr.view(np.uint8)
-        packed = packed_ne.take(rank)                 # (base key << 1) | vector polarity
-        p_row = (packed & 1).astype(np.int8)
-        base_row = packed >> 1
-        base_row += ci_ext[:r]
-        base_ok = None if bx_known else base_row >= 0
-        base_row *= na                                # ADDR_X rows: their own x instead
-        base_row += (ew & 0x7FF) * ia
-        p_row *= na
-        p_row += ((ew >> 11) & 1).astype(np.int8) * ia
-        # bit mask of the row's events: VECT_12 bits 11-0, VECT_8 bits 7-0, ADDR_X just bit 0
-        payload = ew & (np.uint16(0xFFF) >> (v8 << 2).astype(np.uint16))
-        payload *= na
-        payload += ia
-        bits = np.unpackbits(payload.view(np.uint8), bitorder="little").view(bool)
-        f = np.flatnonzero(bits)
-        row = f >> 4
-        col = f & 15
-        dropped = 0
-        if maybe_invalid or base_ok is not None:
-            ok_row = (t_row != _INVALID_T) & (y_row != _NO_Y)
-            if base_ok is not None:
-                ok_row &= base_ok | is_addr
-            if not ok_row.all():
-                ok_ev = ok_row.take(row)
-                dropped = int(row.shape[0] - np.count_nonzero(ok_ev))
-                row, col = row[ok_ev], col[ok_ev]
-        x = base_row.take(row)
-        x += col
-        if x.size and int(x.max()) > 0x7FF:
-            i = int(np.flatnonzero(x > 0x7FF)[0])
-            wi = int(ev_pos[row[i]])
-            raise FormatError(
-                f"vector word 0x{int(w[wi]):04x} puts an event at x={int(x[i])}, beyond the 11-bit "
-                "address range; the stream is corrupt (VECT_BASE_X missing or too many vectors)",
-                source=self.source, offset=off + 2 * wi)
-        m = row.shape[0]
-        o = out[:m]
-        o["t"] = t_row.take(row)
-        if m:
-            self._last_ev = int(o["t"][-1])
-        o["y"] = y_row.take(row)
-        o["x"] = x
-        pr = p_row.take(row)
-        pr <<= 1
-        np.subtract(pr, 1, out=o["p"])
-        return m, trig, dropped, d_tr
-
-    def _vector_state(self, nty, nw, ne_pos, ci_ext, need_rows):
-        """Track VECT_BASE_X over the block's non-event words.
-
-        Returns (packed_ne, base_known_at_start) when need_rows, where packed_ne[j] is
-        (key << 1) | vector polarity before non-event word j: the base x of a vector row i is
-        key[rank[i]] + ci_ext[i], ci_ext holding the prefix sums of the vector increments
-        (12 / 8) over the rows. Always advances the decoder's state.
-        """
-        bx0, vp0 = self._bx, self._vp
-        b_sel = np.flatnonzero(nty == 3)
-        total_inc = int(ci_ext[-1])
-        nb = b_sel.shape[0]
-        key_ext = np.empty(nb + 1, np.int64)
-        pol_ext = np.empty(nb + 1, np.int8)
-        key_ext[0] = bx0 if bx0 >= 0 else -(1 << 40)
-        pol_ext[0] = vp0
-        if nb:
-            bw = nw.take(b_sel)
-            key_ext[1:] = bw & 0x7FF
-            if total_inc:
-                key_ext[1:] -= ci_ext.take(ne_pos.take(b_sel) - b_sel)
-            pol_ext[1:] = (bw >> 11) & 1
-            self._bx = int(key_ext[-1] + total_inc)
-            self._vp = int(pol_ext[-1])
-        elif bx0 >= 0:
-            self._bx = bx0 + total_inc
-        if not need_rows:
-            return None
-        cb = np.empty(nty.shape[0] + 1, np.int64)
-        cb[0] = 0
-        np.cumsum(nty == 3, out=cb[1:])
-        key_ext <<= 1
-        key_ext |= pol_ext
-        return key_ext.take(cb), bx0 >= 0
-
-    def _time_table(self, tv, t0, w, ne_pos, t_sel, off):
-        """Unwrapped time (us) after each time word; -1 while no TIME_HIGH has been seen.
-
-        Raises FormatError for a TIME_HIGH that drops by at most half its range and (unless
-        time_low_carry) for a TIME_LOW below the previous one with no TIME_HIGH in between.
-        """
-        k = tv.shape[0]
-        is_h = tv >= 0x8000
-        val = (tv & 0xFFF).astype(np.int64)
-        known = t0 >= 0
-        not_h = ~is_h
-        low = val * not_h                    # low bits in force after each word (TIME_HIGH: 0)
-        lp = np.empty(k, np.int64)           # ... and before it
-        lp[0] = (t0 & 0xFFF) if known else 0
-        lp[1:] = low[:-1]
-        drop = (val < lp) & not_h
-        h_idx = np.flatnonzero(is_h)
-        if not known:                        # no valid low bits before the first TIME_HIGH
-            drop[:h_idx[0] if h_idx.size else k] = False
-        carry = self.time_low_carry
-        if not carry and drop.any():
-            i = int(np.flatnonzero(drop)[0])
-            self._raise_backwards(w, ne_pos, t_sel, i, int(lp[i]), int(val[i]), False, off)
-        if carry:
-            cc = np.cumsum(drop)
-        if h_idx.size == 0:
-            if not known:
-                return np.full(k, -1, np.int64)
-            tcur = (t0 >> 12) + cc if carry else np.full(k, t0 >> 12, np.int64)
-            tcur <<= 12
-            tcur += val
-            return tcur
-        hv = val.take(h_idx)
-        prev_v = np.empty_like(hv)
-        prev_v[0] = ((t0 >> 12) & 0xFFF) if known else hv[0]
-        prev_v[1:] = hv[:-1]
-        if carry:
-            c_at = cc.take(h_idx)
-            prev_v[0] += c_at[0]
-            prev_v[1:] += np.diff(c_at)
-        d = (prev_v & 0xFFF) - hv
-        wrap = d > _HALF
-        back = (d > 0) & ~wrap
-        if not known:
-            back[0] = False
-        if back.any():
-            i = int(np.flatnonzero(back)[0])
-            self._raise_backwards(w, ne_pos, t_sel, int(h_idx[i]), int(prev_v[i] & 0xFFF),
-                                  int(hv[i]), True, off)
-        inc = wrap.astype(np.int64)
-        if carry:
-            inc += prev_v >> 12
-        if not known:
-            inc[0] = 0
-        q = np.cumsum(inc)
-        q += (t0 >> 24) if known else 0
-        hh_ext = np.empty(hv.shape[0] + 1, np.int64)
-        hh_ext[0] = (t0 >> 12) if known else -1
-        np.bitwise_or(q << 12, hv, out=hh_ext[1:])
-        rank = np.cumsum(is_h)
-        tcur = hh_ext.take(rank)
-        if carry:
-            c_ext = np.empty(hv.shape[0] + 1, np.int64)
-            c_ext[0] = 0
-            c_ext[1:] = c_at
-            tcur += cc - c_ext.take(rank)
-        tcur <<= 12
-        tcur += low
-        if not known:
-            tcur[:h_idx[0]] = -1
-        return tcur
-
-    def _check_event_times(self, tns_ext, ne_pos, t_sel, r, w, off, prev_time_off):
-        """Raise FormatError if the time given to some events is before earlier events' time."""
-        kt = t_sel.shape[0]
-        seg = np.empty(kt + 1, np.int64)     # events decoded under each time value
-        if kt:
-            rb = ne_pos.take(t_sel) - t_sel
-            seg[0] = rb[0]
-            np.subtract(rb[1:], rb[:-1], out=seg[1:-1])
-            seg[-1] = r - rb[-1]
-        else:
-            seg[0] = r
-        idx = np.flatnonzero((seg > 0) & (tns_ext != _INVALID_T))
-        te = tns_ext.take(idx)
-        prev = np.empty_like(te)
-        if te.size:
-            prev[0] = self._last_ev
-            prev[1:] = te[:-1]
-        bad = np.flatnonzero(te < prev)
-        if not bad.size:
-            return
-        i = int(bad[0])
-        s = int(idx[i])
-        base = self.time_base_ns
-        if s == 0:
-            where = prev_time_off
-            what = "the time word before this block"
-        else:
-            wi = int(ne_pos[t_sel[s - 1]])
-            where = off + 2 * wi
-            what = f"{'TIME_HIGH' if w[wi] >= 0x8000 else 'TIME_LOW'} word 0x{int(w[wi]):04x}"
-        raise FormatError(
-            f"{what} gives the following events time {(int(te[i]) - base) // 1000} us, before earlier "
-            f"events at {(int(prev[i]) - base) // 1000} us: time goes backwards (a TIME_HIGH that "
-            "repeats its value resets the low time bits); the stream is corrupt or not EVT 3.0",
-            source=self.source, offset=where)
-
-    def _raise_backwards(self, w, ne_pos, t_sel, i, prev_v, cur_v, is_high, off):
-        wi = int(ne_pos[t_sel[i]])
-        word = int(w[wi])
-        if is_high:
-            msg = (f"TIME_HIGH word 0x{word:04x} sets time bits 23-12 to {cur_v} after {prev_v}: "
+    def _raise(self, rep, w, off):
+        code, wi, a, b = (int(v) for v in rep[:4])
+        where = off + 2 * wi
+        word = int(w[wi]) if wi >= 0 else 0
+        if code == _E_HIGH_BACK:
+            msg = (f"TIME_HIGH word 0x{word:04x} sets time bits 23-12 to {a} after {b}: "
                    "time goes backwards (a drop of at most half the 12-bit range is not a 24-bit "
                    "wrap-around); the stream is corrupt or not EVT 3.0")
-        else:
-            msg = (f"TIME_LOW word 0x{word:04x} sets time bits 11-0 to {cur_v} after {prev_v} with no "
+        elif code == _E_LOW_BACK:
+            msg = (f"TIME_LOW word 0x{word:04x} sets time bits 11-0 to {a} after {b} with no "
                    "TIME_HIGH in between: time goes backwards; the stream is corrupt or not EVT 3.0 "
                    "(expelliarmus writes EVT 3.0 files without TIME_HIGH words: read those with "
                    "time_low_carry=True)")
-        raise FormatError(msg, source=self.source, offset=off + 2 * wi)
+        elif code == _E_OVERFLOW:
+            msg = (f"time passes {MAX_SENSOR_US} us after so many TIME_HIGH wrap-arounds "
+                   "that nanoseconds overflow; the stream is corrupt")
+        elif code == _E_EVENT_BACK:
+            if wi < 0:
+                where = self._time_off
+                what = "the time word before this block"
+            else:
+                what = f"{'TIME_HIGH' if word >= 0x8000 else 'TIME_LOW'} word 0x{word:04x}"
+            base = self.time_base_ns
+            msg = (f"{what} gives the following events time {(a - base) // 1000} us, before earlier "
+                   f"events at {(b - base) // 1000} us: time goes backwards (a TIME_HIGH that "
+                   "repeats its value resets the low time bits); the stream is corrupt or not EVT 3.0")
+        elif code == _E_TRIG_BACK:
+            msg = (f"EXT_TRIGGER word 0x{word:04x} gets time {a} ns, before the previous trigger "
+                   f"at {b} ns; the time went backwards")
+        elif code == _E_X_RANGE:
+            msg = (f"vector word 0x{word:04x} puts an event at x={a}, beyond the 11-bit address "
+                   "range; the stream is corrupt (VECT_BASE_X missing or too many vectors)")
+        else:
+            raise ValueError("EVT 3.0 decoder: output array shorter than count_events()")
+        raise FormatError(msg, source=self.source, offset=where)
 
 
-_NO_TRIGGERS = np.empty(0, TRIGGER_DTYPE)
-_ZERO1 = np.zeros(1, np.int64)
+@kernel
+def _count_events(w):
+    """Events the words decode to at most: one per ADDR_X, one per set vector mask bit."""
+    total = 0
+    for i in range(w.shape[0]):
+        v = np.int64(w[i])
+        ty = v >> 12
+        m = v & (0xFFF if ty == 4 else 0xFF)
+        m = m - ((m >> 1) & 0x555)           # popcount of 12 bits (SWAR)
+        m = (m & 0x333) + ((m >> 2) & 0x333)
+        m = (m + (m >> 4)) & 0xF0F
+        m = (m + (m >> 8)) & 0x1F
+        total += (ty == 2) + ((ty >> 1) == 2) * m
+    return total
+
+
+@kernel
+def _decode(w, start, out, k, trig, st, rep):
+    """Decode EVT 3.0 words w[start:] into out[k:] (EVENT_DTYPE, room for _count_events)
+    and `trig` (TRIGGER_DTYPE).
+
+    Updates the state array `st` and the report `rep` (error code and position, dropped
+    counts, last time word); returns (next word, events written, triggers written). Stops
+    at the first error, or before a trigger that does not fit in `trig`.
+    """
+    n_out = out.shape[0]
+    time = st[_S_TIME]
+    y = st[_S_Y]
+    bx = st[_S_BX]
+    vp = st[_S_VP]
+    last_ev = st[_S_LAST_EV]
+    last_tr = st[_S_LAST_TR]
+    base = st[_S_BASE]
+    carry = st[_S_CARRY] != 0
+    tns = base + 1000 * time if time >= 0 else _INVALID_T
+    time_word = rep[_R_TIME_WORD]
+    d_ev = rep[_R_DROP_EV]
+    d_tr = rep[_R_DROP_TR]
+    n_tr = trig.shape[0]
+    ntr = 0
+    err = 0
+    at = 0
+    ea = 0
+    eb = 0
+    i = start
+    n = w.shape[0]
+    while i < n:
+        v = np.int64(w[i])
+        i += 1
+        ty = v >> 12
+        if ty == 2:                                      # ADDR_X
+            if time >= 0:
+                if tns < last_ev:
+                    err, at, ea, eb = _E_EVENT_BACK, time_word, tns, last_ev
+                    break
+                last_ev = tns
+                if y >= 0:
+                    if k >= n_out:
+                        err, at = _E_OUT_FULL, i - 1
+                        break
+                    e = out[k]
+                    e.t = tns
+                    e.x = v & 0x7FF
+                    e.y = y
+                    e.p = ((v >> 10) & 2) - 1
+                    k += 1
+                    continue
+            d_ev += 1
+        elif ty == 4 or ty == 5:                         # VECT_12 / VECT_8
+            m = v & (0xFFF if ty == 4 else 0xFF)
+            if time >= 0:
+                if tns < last_ev:
+                    err, at, ea, eb = _E_EVENT_BACK, time_word, tns, last_ev
+                    break
+                last_ev = tns
+            if time >= 0 and y >= 0 and bx >= 0:
+                if m:
+                    if bx > 2047 - 11:                   # near the end of the 11-bit range
+                        lo = max(2048 - bx, 0)
+                        if m >> lo:
+                            err, at = _E_X_RANGE, i - 1
+                            ea = bx + lo + trailing_zeros(m >> lo)
+                            break
+                    if k + 12 > n_out:
+                        c = 0
+                        mm = m
+                        while mm:
+                            mm &= mm - 1
+                            c += 1
+                        if k + c > n_out:
+                            err, at = _E_OUT_FULL, i - 1
+                            break
+                    p = 2 * vp - 1
+                    while m:
+                        e = out[k]
+                        e.t = tns
+                        e.x = bx + trailing_zeros(m)
+                        e.y = y
+                        e.p = p
+                        k += 1
+                        m &= m - 1
+            else:
+                while m:
+                    m &= m - 1
+                    d_ev += 1
+            if bx >= 0:
+                bx += 12 if ty == 4 else 8
+        elif ty == 0:                                    # ADDR_Y
+            y = v & 0x7FF
+        elif ty == 6:                                    # TIME_LOW
+            time_word = i - 1
+            if time >= 0:
+                lo = v & 0xFFF
+                prev_lo = time & 0xFFF
+                if lo < prev_lo:
+                    if not carry:
+                        err, at, ea, eb = _E_LOW_BACK, i - 1, lo, prev_lo
+                        break
+                    time += 4096
+                time = (time & ~0xFFF) | lo
+                if time > MAX_SENSOR_US:
+                    err, at = _E_OVERFLOW, i - 1
+                    break
+                tns = base + 1000 * time
+        elif ty == 8:                                    # TIME_HIGH
+            time_word = i - 1
+            hv = v & 0xFFF
+            if time >= 0:
+                high = time >> 12
+                prev_hv = high & 0xFFF
+                d = prev_hv - hv
+                if d > _HALF:
+                    high += 4096                         # 24-bit wrap-around
+                elif d > 0:
+                    err, at, ea, eb = _E_HIGH_BACK, i - 1, hv, prev_hv
+                    break
+                time = ((high & ~0xFFF) | hv) << 12
+            else:
+                time = hv << 12
+            if time > MAX_SENSOR_US:
+                err, at = _E_OVERFLOW, i - 1
+                break
+            tns = base + 1000 * time
+        elif ty == 3:                                    # VECT_BASE_X
+            bx = v & 0x7FF
+            vp = (v >> 11) & 1
+        elif ty == 10:                                   # EXT_TRIGGER
+            if time < 0:
+                d_tr += 1
+                continue
+            if ntr == n_tr:                              # buffer full: resume here later
+                i -= 1
+                break
+            if tns < last_tr:
+                err, at, ea, eb = _E_TRIG_BACK, i - 1, tns, last_tr
+                break
+            last_tr = tns
+            r = trig[ntr]
+            r.t = tns
+            r.id = (v >> 8) & 0xF
+            r.value = v & 1
+            ntr += 1
+    st[_S_TIME] = time
+    st[_S_Y] = y
+    st[_S_BX] = bx
+    st[_S_VP] = vp
+    st[_S_LAST_EV] = last_ev
+    st[_S_LAST_TR] = last_tr
+    rep[_R_ERR] = err
+    rep[_R_AT] = at
+    rep[_R_A] = ea
+    rep[_R_B] = eb
+    rep[_R_DROP_EV] = d_ev
+    rep[_R_DROP_TR] = d_tr
+    rep[_R_TIME_WORD] = time_word
+    return i, k, ntr
 
 
 # --------------------------------------------------------------------------------------
@@ -472,130 +347,152 @@ class Evt3Encoder(ChunkedEncoder):
     WORD_DTYPE = np.dtype("<u2")
 
     @staticmethod
-    def encode_words(us, x, y, p, tus, tid, tval, prev_high, carry):
-        return encode_words(us, x, y, p, tus, tid, tval, prev_high, carry)
+    def encode_words(us, events, tus, triggers, prev_high, carry):
+        return encode_words(us, events, tus, triggers, prev_high, carry)
 
 
-def encode_words(us, x, y, p, tus, tid, tval, prev_high, carry=None):
-    """Encode sorted events (us, x, y, p) and sorted triggers into EVT 3.0 words.
+def encode_words(us, events, tus, triggers, prev_high, carry=None):
+    """Encode sorted events (times `us`, x / y / p from the EVENT_DTYPE `events`) and sorted
+    triggers (times `tus`, id / value from the TRIGGER_DTYPE `triggers`) into EVT 3.0 words.
 
     `prev_high`: full time-high value of the last TIME_HIGH already in the stream (None at
     its start). `carry`: None to start a self-contained chunk (TIME_HIGH, TIME_LOW and ADDR_Y
     written up front), or the dict returned by the previous call to continue seamlessly.
     Returns (uint16 words, new prev_high, new carry).
     """
+    st = np.array([-1 if prev_high is None else prev_high,
+                   -1 if carry is None else carry["us"],
+                   -1 if carry is None or carry["y"] is None else carry["y"]], np.int64)
+    buf = np.empty(_word_bound(us, tus, prev_high), np.uint16)
+    nw = _encode(readonly(us), readonly(events), readonly(tus), readonly(triggers), st, buf)
+    if nw < 0:   # pragma: no cover - _word_bound is an upper bound
+        raise RuntimeError("EVT 3.0 encoder: output bound too small")
+    buf.resize(nw, refcheck=False)       # give back the unused tail (realloc, no copy)
+    return (buf, None if st[0] < 0 else int(st[0]),
+            {"us": int(st[1]), "y": None if st[2] < 0 else int(st[2])})
+
+
+def _word_bound(us, tus, prev_high) -> int:
+    """Most words _encode can write: 4 per event (TIME_HIGH, TIME_LOW, ADDR_Y, ADDR_X; a
+    vector window adds VECT_BASE_X + VECT but spans two or more events), 3 per trigger, plus
+    the filler TIME_HIGH words. Those step from prev_high (0 if none) towards the last
+    time-high value at most _FILL_SPACING apart, so there are at most
+    (last - prev) // _FILL_SPACING + 1 of them.
+
+    The output buffer is allocated here by numpy (huge pages for big buffers: fewer page
+    faults than numba's allocator) and never grows inside the kernel.
+    """
+    last = max(int(us[-1]) if us.shape[0] else 0, int(tus[-1]) if tus.shape[0] else 0)
+    prev = prev_high if prev_high is not None else 0
+    return 4 * us.shape[0] + 3 * tus.shape[0] + max((last >> 12) - prev, 0) // _FILL_SPACING + 16
+
+
+@kernel
+def _encode(us, ev, tus, trig, st, buf):
+    """EVT 3.0 words for one chunk; st = [prev_high, last time, last row] (-1: none), updated.
+
+    The stream is a sequence of elements in time order: triggers, and runs of events (same
+    time, row and polarity, increasing x), a trigger after the events of its microsecond.
+    Before an element come a TIME_HIGH when time bits 23+ change (preceded by fillers so that
+    no two TIME_HIGH values are more than _FILL_SPACING apart, counting from 0 when
+    prev_high is -1) and a TIME_LOW when the time changes; before a run an ADDR_Y when the
+    row changes. A run of one event is an ADDR_X, a longer one VECT_BASE_X + one VECT_12 per
+    12-wide window of x (VECT_8 for the run's last window when it fits in 8 bits), with a
+    new VECT_BASE_X wherever windows skip. Writes to `buf` (room for _word_bound words);
+    returns the number of words written (-1 if `buf` is too short).
+    """
+    cap = buf.shape[0]
     n = us.shape[0]
-    x = x.astype(np.int64)
-    # ---- event items: single events (ADDR_X) or 12-wide vector windows -----------------
-    if n:
-        brk = np.empty(n, bool)
-        brk[0] = True
-        np.not_equal(us[1:], us[:-1], out=brk[1:])
-        brk[1:] |= y[1:] != y[:-1]
-        brk[1:] |= p[1:] != p[:-1]
-        brk[1:] |= x[1:] <= x[:-1]
-        run_start = np.flatnonzero(brk)
-        run_len = np.diff(np.append(run_start, n))
-        x0 = np.repeat(x[run_start], run_len)
-        off = x - x0
-        win = off // 12
-        newit = brk.copy()
-        newit[1:] |= win[1:] != win[:-1]
-        it_start = np.flatnonzero(newit)
-        run_id = np.cumsum(brk) - 1
-        it_run = run_id[it_start]
-        single = run_len[it_run] == 1
-        it_win = win[it_start]
-        bitv = np.left_shift(1, off - 12 * win).astype(np.uint16)
-        mask = np.bitwise_or.reduceat(bitv, it_start)
-        first_in_run = brk[it_start]
-        prev_win = np.empty_like(it_win)
-        prev_win[0] = -2
-        prev_win[1:] = it_win[:-1]
-        need_base = ~single & (first_in_run | (it_win - prev_win != 1))
-        last_in_run = np.empty_like(first_in_run)
-        last_in_run[:-1] = first_in_run[1:]
-        last_in_run[-1] = True
-        use8 = ~single & last_in_run & (mask < 256)
-        it_us = us[it_start]
-        it_y = y[it_start].astype(np.uint16)
-        pbit = (p[it_start] > 0).astype(np.uint16) << 11
-        main = np.where(single, 0x2000 | pbit | x[it_start].astype(np.uint16),
-                        np.where(use8, 0x5000, 0x4000) | mask).astype(np.uint16)
-        base_word = (0x3000 | pbit | (x0[it_start] + 12 * it_win)).astype(np.uint16)
-    else:
-        it_us = np.empty(0, np.int64)
-        it_y = np.empty(0, np.uint16)
-        main = base_word = np.empty(0, np.uint16)
-        need_base = np.empty(0, bool)
-    n_it = it_us.shape[0]
     ntr = tus.shape[0]
-
-    # ---- merge triggers (placed after the events of the same microsecond) ---------------
-    if ntr:
-        ins = np.searchsorted(it_us, tus, side="right")
-        pos_tr = ins + np.arange(ntr)
-        pos_it = np.arange(n_it) + np.searchsorted(ins, np.arange(n_it), side="right")
-        M = n_it + ntr
-        m_us = np.empty(M, np.int64)
-        m_us[pos_it] = it_us
-        m_us[pos_tr] = tus
-    else:
-        pos_it = None
-        M = n_it
-        m_us = it_us
-
-    tchg = np.empty(M, bool)
-    tchg[0] = carry is None or m_us[0] != carry["us"]
-    np.not_equal(m_us[1:], m_us[:-1], out=tchg[1:])
-    hi = m_us >> 12
-    hchg = np.empty(M, bool)
-    hchg[0] = carry is None or hi[0] != carry["us"] >> 12
-    np.not_equal(hi[1:], hi[:-1], out=hchg[1:])
-    th_idx = np.flatnonzero(hchg)
-    fcounts, fvals = time_high_fillers(hi[th_idx], prev_high, _FILL_SPACING)
-    Fm = np.zeros(M, np.int64)
-    Fm[th_idx] = fcounts
-
-    ychg = np.empty(n_it, bool)
-    if n_it:
-        ychg[0] = carry is None or carry["y"] is None or it_y[0] != carry["y"]
-        np.not_equal(it_y[1:], it_y[:-1], out=ychg[1:])
-
-    head = Fm + hchg + tchg               # words before the element's own words
-    cm = head + 1
-    item_extra = ychg.astype(np.int64) + need_base     # (bool + bool would be a logical or)
-    if ntr:
-        cm[pos_it] += item_extra
-    else:
-        cm += item_extra
-    end = np.cumsum(cm)
-    start = end - cm
-    total = int(end[-1])
-    out = np.empty(total, np.uint16)
-
-    if fvals.size:
-        nzi = np.flatnonzero(fcounts)
-        owner_start = np.repeat(start[th_idx[nzi]], fcounts[nzi])
-        first = np.repeat(np.cumsum(fcounts[nzi]) - fcounts[nzi], fcounts[nzi])
-        fpos = owner_start + (np.arange(fvals.size) - first)
-        out[fpos] = 0x8000 | (fvals & 0xFFF)
-    out[start[th_idx] + Fm[th_idx]] = 0x8000 | (hi[th_idx] & 0xFFF)
-    tl_idx = np.flatnonzero(tchg)
-    out[start[tl_idx] + Fm[tl_idx] + hchg[tl_idx]] = 0x6000 | (m_us[tl_idx] & 0xFFF)
-    if n_it:
-        if ntr:
-            s_it = start[pos_it] + head[pos_it]
-            e_it = end[pos_it]
+    pos = 0
+    prev_high = st[0]
+    cur_us = st[1]
+    cur_y = st[2]
+    i = 0
+    ti = 0
+    while True:
+        u = us[i] if i < n else _MAX_I64
+        is_trig = ti < ntr and tus[ti] < u
+        if is_trig:
+            u = tus[ti]
+            j = i
+        elif i < n:
+            e = ev[i]
+            yy = np.int64(e.y)
+            pp = e.p
+            xp = np.int64(e.x)
+            j = i + 1                                    # run end
+            while j < n:
+                f = ev[j]
+                if (us[j] != u) | (f.y != yy) | (f.p != pp) | (f.x <= xp):
+                    break
+                xp = np.int64(f.x)
+                j += 1
         else:
-            s_it = start + head
-            e_it = end
-        out[s_it[ychg]] = it_y[ychg]
-        out[(s_it + ychg)[need_base]] = base_word[need_base]
-        out[e_it - 1] = main
-    if ntr:
-        out[end[pos_tr] - 1] = (0xA000 | (tid.astype(np.uint16) << 8) | tval.astype(np.uint16))
-    last_high = int(hi[th_idx[-1]]) if th_idx.size else prev_high
-    new_carry = {"us": int(m_us[-1]),
-                 "y": int(it_y[-1]) if n_it else (carry["y"] if carry is not None else None)}
-    return out, last_high, new_carry
+            break
+        if u != cur_us:                                  # time words
+            hi = u >> 12
+            if cur_us < 0 or hi != cur_us >> 12:
+                prev = prev_high if prev_high >= 0 else 0
+                gap = hi - prev
+                k0 = 1
+                k1 = 0
+                if gap > _FILL_SPACING:
+                    k1 = (gap - 1) // _FILL_SPACING
+                    if prev_high < 0:
+                        k0 = 0                           # make the virtual TIME_HIGH 0 real
+                if pos + (k1 - k0 + 1) + 2 > cap:
+                    return -1
+                for k in range(k0, k1 + 1):
+                    buf[pos] = 0x8000 | ((prev + k * _FILL_SPACING) & 0xFFF)
+                    pos += 1
+                buf[pos] = 0x8000 | (hi & 0xFFF)
+                pos += 1
+                prev_high = hi
+            elif pos >= cap:
+                return -1
+            buf[pos] = 0x6000 | (u & 0xFFF)
+            pos += 1
+            cur_us = u
+        if is_trig:
+            if pos >= cap:
+                return -1
+            buf[pos] = 0xA000 | (np.int64(trig[ti].id) << 8) | trig[ti].value
+            pos += 1
+            ti += 1
+            continue
+        if pos + 1 + 2 * (j - i) > cap:
+            return -1
+        if yy != cur_y:
+            buf[pos] = yy
+            pos += 1
+            cur_y = yy
+        x0 = np.int64(ev[i].x)
+        pbit = 0x800 if pp > 0 else 0
+        if j == i + 1:                                   # single event
+            buf[pos] = 0x2000 | pbit | x0
+            pos += 1
+        else:
+            s = i
+            prev_win = -2
+            while s < j:
+                win = (np.int64(ev[s].x) - x0) // 12
+                lo = x0 + 12 * win
+                mask = 0
+                while s < j:
+                    off = np.int64(ev[s].x) - lo
+                    if off >= 12:
+                        break
+                    mask |= 1 << off
+                    s += 1
+                if win - prev_win != 1:                  # first window or a skip
+                    buf[pos] = 0x3000 | pbit | lo
+                    pos += 1
+                prev_win = win
+                buf[pos] = (0x5000 if s == j and mask < 256 else 0x4000) | mask
+                pos += 1
+        i = j
+    st[0] = prev_high
+    st[1] = cur_us
+    st[2] = cur_y
+    return pos
