@@ -35,8 +35,23 @@ def atomic_output(path, *, overwrite: bool = False, directory: bool = False) -> 
         tmp.touch()
     try:
         yield tmp
-        if path.exists():  # only reachable with overwrite=True
+        if overwrite and path.exists():
             shutil.rmtree(path) if path.is_dir() else path.unlink()
-        os.replace(tmp, path)
+        _publish(tmp, path, no_clobber=not overwrite)
     finally:
         shutil.rmtree(tmp_dir, ignore_errors=True)
+
+
+def _publish(tmp: Path, path: Path, *, no_clobber: bool) -> None:
+    """Move tmp to path; with no_clobber a file that appeared meanwhile is never replaced."""
+    if no_clobber and tmp.is_file():
+        try:
+            os.link(tmp, path)            # fails if path exists: no race with another writer
+            return
+        except FileExistsError:
+            raise OutputExistsError(path) from None
+        except OSError:                   # file systems without hard links
+            pass
+    if no_clobber and path.exists():
+        raise OutputExistsError(path)
+    os.replace(tmp, path)

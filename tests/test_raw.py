@@ -170,9 +170,10 @@ def test_write_raw_validates_and_leaves_nothing_behind(tmp_path, kwargs, match):
 
 
 def test_write_raw_removes_temp_file_on_failure(tmp_path, monkeypatch):
-    def boom(*a, **k):
-        raise OSError("disk full")
-    monkeypatch.setattr(raw_mod.os, "fsync", boom)
+    class FailingEncoder:
+        def encode(self, *a, **k):
+            raise OSError("disk full")
+    monkeypatch.setattr(raw_mod, "make_encoder", lambda *a, **k: FailingEncoder())
     with pytest.raises(OSError, match="disk full"):
         write_raw(tmp_path / "z.raw", make_events([0], [1], [1], [1]), width=4, height=4)
     assert os.listdir(tmp_path) == []

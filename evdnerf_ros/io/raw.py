@@ -15,13 +15,13 @@ RAW file are sensor microseconds: t_ns = 1000 * us.
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
+from ..atomic import atomic_output
 from ..errors import FormatError, InputError, OutputExistsError
 from ..events.codecs import Decoded, make_decoder, make_encoder
 from ..events.codecs._common import check_events_for_us, concat_triggers, triggers_to_us
@@ -303,17 +303,6 @@ def iter_raw(path, *, chunk_bytes: int = 16 << 20, time_low_carry: bool = False
     dec.close()
 
 
-def _umask() -> int:
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError):
-        pass
-    return 0o022
-
-
 def _header_text(encoding: str, width: int, height: int) -> bytes:
     evt = "3.0" if encoding == "evt3" else "2.0"
     fmt = "EVT3" if encoding == "evt3" else "EVT2"
@@ -331,9 +320,8 @@ def write_raw(path, events, *, width: int, height: int, encoding: str = "evt3",
               triggers=None) -> None:
     """Write events (whole microseconds, t_ns = 1000 * us) as an OpenEB RAW file.
 
-    Refuses an existing path (OutputExistsError); the file appears atomically (written to a
-    temporary file in the same directory, then linked into place; the temporary file is
-    removed on any error).
+    Refuses an existing path (OutputExistsError); the file appears atomically (see
+    evdnerf_ros.atomic: nothing is left behind on error, an existing file is never replaced).
     """
     if encoding not in ("evt3", "evt2"):
         raise InputError(f"RAW files hold evt3 or evt2, not {encoding!r}")
@@ -354,38 +342,20 @@ def write_raw(path, events, *, width: int, height: int, encoding: str = "evt3",
                              f"{width}x{height} geometry; give the sensor's real width and height")
     triggers, _ = triggers_to_us(triggers, 0, name, max_id=16 if encoding == "evt3" else 32)
     enc = make_encoder(encoding)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    try:
-        os.chmod(tmp, 0o666 & ~_umask())     # mkstemp makes 0600; give the usual permissions
-        with os.fdopen(fd, "wb") as f:
-            f.write(_header_text(encoding, int(width), int(height)))
-            n = events.shape[0]
+    with atomic_output(path) as tmp, open(tmp, "wb") as f:
+        f.write(_header_text(encoding, int(width), int(height)))
+        n = events.shape[0]
+        if triggers.size:
+            # triggers go with the chunk that covers their time
+            tt = triggers["t"]
+            bounds = [events["t"][min(a + _WRITE_CHUNK_EVENTS, n) - 1] if n else None
+                      for a in range(0, max(n, 1), _WRITE_CHUNK_EVENTS)]
+        for ci, a in enumerate(range(0, max(n, 1), _WRITE_CHUNK_EVENTS)):
+            ev = events[a:a + _WRITE_CHUNK_EVENTS]
+            tr = None
             if triggers.size:
-                # triggers go with the chunk that covers their time
-                tt = triggers["t"]
-                bounds = [events["t"][min(a + _WRITE_CHUNK_EVENTS, n) - 1] if n else None
-                          for a in range(0, max(n, 1), _WRITE_CHUNK_EVENTS)]
-            for ci, a in enumerate(range(0, max(n, 1), _WRITE_CHUNK_EVENTS)):
-                ev = events[a:a + _WRITE_CHUNK_EVENTS]
-                tr = None
-                if triggers.size:
-                    last = ci == len(bounds) - 1
-                    lo = 0 if ci == 0 else np.searchsorted(tt, bounds[ci - 1], side="right")
-                    hi = tt.shape[0] if last else np.searchsorted(tt, bounds[ci], side="right")
-                    tr = triggers[lo:hi]
-                f.write(enc.encode(ev, tr))
-            f.flush()
-            os.fsync(f.fileno())
-        try:
-            os.link(tmp, path)
-        except FileExistsError:
-            raise OutputExistsError(path) from None
-        except OSError:                      # no hard links here: replace after a re-check
-            if path.exists():
-                raise OutputExistsError(path) from None
-            os.replace(tmp, path)
-    finally:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
+                last = ci == len(bounds) - 1
+                lo = 0 if ci == 0 else np.searchsorted(tt, bounds[ci - 1], side="right")
+                hi = tt.shape[0] if last else np.searchsorted(tt, bounds[ci], side="right")
+                tr = triggers[lo:hi]
+            f.write(enc.encode(ev, tr))
