@@ -100,6 +100,34 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _cmd_convert(args) -> int:
+    from .session.convert import run_convert
+    from .units import parse_duration_ns
+
+    if (args.start is None) != (args.end is None):
+        raise EvdnerfError("--start and --end go together (or leave both out for the automatic "
+                           "motion window)")
+    window = None
+    if args.start is not None:
+        window = (parse_duration_ns(args.start, name="--start"),
+                  parse_duration_ns(args.end, name="--end"))
+    run_convert(args.session, args.output, fmt=args.format, window=window,
+                downsample=args.downsample, offsets=args.offsets, poses=args.poses,
+                intrinsics=args.intrinsics, frames=not args.no_frames,
+                compression=args.compression, n_windows=args.n_windows,
+                event_time=args.event_time, raw_events=not args.no_raw_events,
+                overwrite=args.overwrite)
+    return 0
+
+
+def _cmd_import_evdnerf(args) -> int:
+    from .io.evdnerf_format import run_import_evdnerf
+
+    run_import_evdnerf(args.source, args.output, c_pos=args.c_pos, c_neg=args.c_neg,
+                       overwrite=args.overwrite)
+    return 0
+
+
 def _cmd_demo(args) -> int:
     from .demo import run_demo
 
@@ -212,6 +240,52 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker processes; 0 = one per CPU (default %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing session folder")
     p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser("convert", help="turn a synced session into a training set",
+                       description="Decode every view, apply the sync offsets (t = 0 at the "
+                                   "common motion onset), crop the time window, optionally sum "
+                                   "2x2 pixel blocks, and write TRAIN.h5 (chunked, compressed, "
+                                   "with a 1 ms time index per view) or, with --format evdnerf, "
+                                   "the EvDNeRF paper's transforms_*.json + data_frames_*.npy.")
+    p.add_argument("session", help="session folder (session.yaml + one bag per view)")
+    p.add_argument("-o", "--output", required=True, help="TRAIN.h5 or, for --format evdnerf, a folder")
+    p.add_argument("--format", choices=["h5", "evdnerf"], default="h5", help="output format (default h5)")
+    p.add_argument("--start", help="window start in the synced clock, e.g. 0 or --start=-50ms "
+                                   "(with --end; default: the motion window)")
+    p.add_argument("--end", help="window end in the synced clock, e.g. 1s")
+    p.add_argument("--downsample", type=int, choices=[1, 2], default=1,
+                   help="2: sum events over 2x2 pixel blocks, as the paper does (default 1)")
+    p.add_argument("--offsets", choices=["sync", "ground-truth"], default="sync",
+                   help="clock offsets from `evdnerf sync` (default) or, for simulated sessions, "
+                        "the injected ground truth")
+    p.add_argument("--poses", choices=["auto", "session", "topic"], default="auto",
+                   help="camera poses from session.yaml (static) or the pose topic (moving camera)")
+    p.add_argument("--intrinsics", choices=["camera_info", "session"], default="camera_info",
+                   help="intrinsics from each bag's CameraInfo (checked against session.yaml) "
+                        "or from session.yaml")
+    p.add_argument("--no-frames", action="store_true", help="leave out the blurred frames")
+    p.add_argument("--compression", choices=["scaleoffset", "gzip"], default="scaleoffset",
+                   help="lossless HDF5 filter: scaleoffset (fast) or gzip (smaller)")
+    p.add_argument("--n-windows", type=int, default=32,
+                   help="--format evdnerf: event frames per view (default %(default)s)")
+    p.add_argument("--event-time", choices=["normalized", "ns"], default="normalized",
+                   help="--format evdnerf: time column of their event arrays")
+    p.add_argument("--no-raw-events", action="store_true",
+                   help="--format evdnerf: leave out their per-view (N, 4) event arrays")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=_cmd_convert)
+
+    p = sub.add_parser("import-evdnerf", help="read a dataset in the EvDNeRF paper's format",
+                       description="Read transforms_{train,val}.json + data_frames_*.npy (and "
+                                   "per-view event arrays when present) into our TRAIN.h5, "
+                                   "converting Blender/OpenGL poses to OpenCV axes. Their event "
+                                   "files may be pickles: import only datasets you trust.")
+    p.add_argument("source", help="dataset folder")
+    p.add_argument("-o", "--output", required=True, help="TRAIN.h5")
+    p.add_argument("--c-pos", type=float, help="C+ if the dataset does not say")
+    p.add_argument("--c-neg", type=float, help="C- if the dataset does not say")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=_cmd_import_evdnerf)
 
     p = sub.add_parser("info", help="summarise an event file or bag",
                        description="Print topics, message types and counts (bags), event count, "

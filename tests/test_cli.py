@@ -158,3 +158,26 @@ def test_video2events_cli(tmp_path, capsys):
     assert np.array_equal(np.unique(ev["t"]), t[1:])
     assert main(["video2events", str(tmp_path / "frames.npz"), str(tmp_path / "ev.npz")]) == 2
     assert "already exists" in capsys.readouterr().err
+
+
+def test_simulate_convert_import_cli(tmp_path, capsys):
+    session = tmp_path / "s"
+    assert main(["simulate", "fork", "-o", str(session), "--views", "2", "--val-views", "0",
+                 "--resolution", "24", "18", "--frame-rate", "0", "--gt-times", "0",
+                 "--supersample", "1", "--jobs", "1", "--min-step", "5ms"]) == 0
+    assert main(["convert", str(session), "-o", str(tmp_path / "t.h5")]) == 2
+    assert "run `evdnerf sync" in capsys.readouterr().err
+    assert not (tmp_path / "t.h5").exists()
+    assert main(["convert", str(session), "-o", str(tmp_path / "t.h5"), "--start", "0"]) == 2
+    assert main(["convert", str(session), "-o", str(tmp_path / "t.h5"),
+                 "--offsets", "ground-truth"]) == 0
+    assert main(["convert", str(session), "-o", str(tmp_path / "paper"), "--format", "evdnerf",
+                 "--offsets", "ground-truth"]) == 0
+    assert (tmp_path / "paper" / "transforms_train.json").exists()
+    assert main(["import-evdnerf", str(tmp_path / "paper"), "-o", str(tmp_path / "back.h5")]) == 0
+    from evdnerf_ros.io.trainingset import TrainingSet
+
+    with TrainingSet(tmp_path / "t.h5") as a, TrainingSet(tmp_path / "back.h5") as b:
+        assert a.views == b.views
+        for v in a.views:
+            assert np.array_equal(a.events(v, *a.time_range), b.events(v, *b.time_range))

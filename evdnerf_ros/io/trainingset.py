@@ -1,0 +1,723 @@
+"""The training set: one HDF5 file (h5py) that `evdnerf convert` writes and the trainer reads.
+
+Layout (``layout = "evdnerf_ros.trainingset"``, ``layout_version = 1``)
+-----------------------------------------------------------------------
+```
+/                                   root attributes:
+    layout, layout_version            "evdnerf_ros.trainingset", 1
+    time_unit                         "ns"
+    width, height                     image size of every view (after downsampling)
+    c_pos, c_neg                      contrast thresholds C+ / C- (paper Eq. 5)
+    eps                               the log-intensity epsilon, when known
+    t_start, t_end                    the time range [t_start, t_end) of the set, int64 ns
+                                      in the common (synced) clock: t = 0 is the common
+                                      motion onset found by `evdnerf sync`
+    index_step_ns                     step of the per-view time index (1 ms)
+    downsample                        1, or 2 when events were summed over 2x2 blocks
+    compression                       "scaleoffset" (default) or "gzip"
+    view_names                        JSON list: the views, in session order
+    scene_bounds                      (2, 3) float64 [min; max] in metres, only when known
+/provenance                         JSON text: source bags, sync offsets and their source,
+                                    software version, session.yaml sha256, window source, ...
+/views/<name>/                      one group per view; attributes:
+    split                             "train" | "val"
+    num_events                        events stored (0 for views that only have dl windows)
+    has_events                        False for imported frame-only views (see dl/ below)
+    offset_ns                         the view clock's reading at common t = 0 (provenance;
+                                      t_common = t_view - offset_ns)
+    moving                            True when poses/ holds a camera trajectory
+  K                                 (3, 3) float64 intrinsics (pixel centres at integer
+                                    coordinates, OpenCV / ROS convention)
+  T_world_cam                       (4, 4) float64 camera-to-world pose, OpenCV camera axes
+                                    (x right, y down, z forward): the static pose of the view
+  events/t, x, y, p                 int64 ns (common clock), uint16, uint16, int8 (+1 / -1);
+                                    sorted by t, t_start <= t < t_end, x < width, y < height;
+                                    chunked (65536 events) and compressed
+  events/index                      int64 (n_bins + 1,), n_bins = ceil((t_end - t_start) /
+                                    index_step_ns): index[k] = number of events with
+                                    t < t_start + k * index_step_ns (so index[0] = 0 and
+                                    index[-1] = num_events). A window [t0, t1) is found by
+                                    reading only the events of the two 1-ms bins holding t0
+                                    and t1 and binary-searching them (never a scan).
+  poses/t, poses/T_world_cam        (M,) int64 ns (common clock), (M, 4, 4) float64: a moving
+                                    camera's trajectory (from the bag's pose topic)
+  frames/frames, t_start, t_end, t  optional motion-blurred grey frames (N, H, W) float32
+                                    linear intensity, exposure start / end / centre times in
+                                    the common clock (the session's frames .npz shifted by the
+                                    view's offset; 2x2 means when downsampled)
+  dl/edges, dl/windows              only for sets imported from EvDNeRF files that carry no
+                                    raw events: (K + 1,) int64 window edges (common clock) and
+                                    (K, H, W) float32 pre-binned dL = C+ N+ - C- N- per window
+```
+
+Compression: "scaleoffset" is HDF5's built-in lossless integer scale-offset filter (each
+chunk stores its minimum and only the bits the range needs: about 5.5 bytes per event at
+high rates, written at > 40 M events/s); "gzip" (level 1 + shuffle) is smaller (~4 bytes per
+event) but about 4x slower to write. Both are part of every libhdf5, so any HDF5 reader
+opens the file.
+
+Reading: :class:`TrainingSet` (a context manager) gives the views, intrinsics, poses, split
+and thresholds, and reads windows by binary search through the time index, in chunks, so a
+1e8-event set never has to sit in RAM.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_output
+from ..errors import FormatError, InputError
+from ..events.types import EVENT_DTYPE, validate_events
+
+LAYOUT = "evdnerf_ros.trainingset"
+LAYOUT_VERSION = 1
+INDEX_STEP_NS = 1_000_000
+EVENT_CHUNK = 1 << 16
+COMPRESSIONS = ("scaleoffset", "gzip")
+SPLITS = ("train", "val")
+#: Events per block when a reader streams through a long window.
+READ_BLOCK = 1 << 22
+
+
+def _h5py():
+    import h5py
+
+    return h5py
+
+
+def _filters(compression: str) -> dict:
+    if compression == "scaleoffset":
+        return {"scaleoffset": 0}
+    if compression == "gzip":
+        return {"compression": "gzip", "compression_opts": 1, "shuffle": True}
+    raise InputError(f"compression {compression!r} is not one of {list(COMPRESSIONS)}")
+
+
+def check_K(K, what: str) -> np.ndarray:
+    try:
+        K = np.asarray(K, np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{what}: K is not a numeric 3x3 matrix") from None
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        raise InputError(f"{what}: K must be a finite 3x3 matrix, got shape {K.shape}")
+    if not (K[0, 0] > 0 and K[1, 1] > 0) or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
+        raise InputError(f"{what}: K is not a pinhole intrinsic matrix (need fx, fy > 0 and last "
+                         f"row [0, 0, 1]); got {K.tolist()}")
+    return K
+
+
+def check_pose(T, what: str, *, tol: float = 1e-6) -> np.ndarray:
+    """A finite rigid 4x4 transform (rotation orthonormal with det +1, last row 0 0 0 1)."""
+    try:
+        T = np.asarray(T, np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{what}: not a numeric 4x4 matrix") from None
+    if T.shape != (4, 4):
+        raise InputError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise InputError(f"{what}: contains NaN or inf; every pose must be finite")
+    R = T[:3, :3]
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if err > tol or abs(det - 1) > tol or not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise InputError(f"{what}: not a rigid transform (|R^T R - I| = {err:.3g}, det R = {det:.6g}, "
+                         f"last row {T[3].tolist()}); poses must be rotations + translations")
+    return T
+
+
+# =========================================================================== writing
+
+
+class _ViewWriter:
+    """Appends one view's events (sorted batches) and builds its time index on the fly."""
+
+    def __init__(self, owner: "TrainingSetWriter", name: str, group):
+        self.owner, self.name, self.group = owner, name, group
+        self.what = f"training set view {name}"
+        self.n = 0
+        self.last_t: int | None = None
+        self._index_parts: list[np.ndarray] = []
+        self._next_k = 0                    # next index edge still to fill
+        self._ds = None
+        self.has_events = True
+
+    def _datasets(self):
+        if self._ds is None:
+            g = self.group.create_group("events")
+            kw = _filters(self.owner.compression)
+            self._ds = {name: g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=EVENT_DTYPE[name],
+                                               chunks=(self.owner.chunk,), **kw)
+                        for name in ("t", "x", "y", "p")}
+        return self._ds
+
+    def append(self, events: np.ndarray) -> None:
+        """Append a batch: sorted, continuing the previous batch in time, inside the geometry
+        and the time range (InputError otherwise; nothing is published then)."""
+        o = self.owner
+        validate_events(events, width=o.width, height=o.height, source=self.what)
+        ds = self._datasets()
+        if events.size == 0:
+            return
+        t = events["t"]
+        t0, t1 = int(t[0]), int(t[-1])
+        if self.last_t is not None and t0 < self.last_t:
+            raise InputError(f"{self.what}: batch starts at t={t0} ns, before the previous batch's last "
+                             f"event (t={self.last_t} ns); batches must continue in time")
+        if t0 < o.t_start:
+            raise InputError(f"{self.what}: event at t={t0} ns lies before the set's t_start={o.t_start} ns")
+        if o.t_end is not None and t1 >= o.t_end:
+            raise InputError(f"{self.what}: event at t={t1} ns lies at or after the set's t_end={o.t_end} ns")
+        # time index: edges t_start + k*step that are <= the batch's last event
+        step = o.index_step_ns
+        k_max = (t1 - o.t_start) // step
+        if k_max >= self._next_k:
+            edges = o.t_start + step * np.arange(self._next_k, k_max + 1, dtype=np.int64)
+            self._index_parts.append(self.n + np.searchsorted(t, edges, "left").astype(np.int64))
+            self._next_k = k_max + 1
+        m = events.size
+        for name, d in ds.items():
+            d.resize((self.n + m,))
+            d[self.n:self.n + m] = np.ascontiguousarray(events[name])
+        self.n += m
+        self.last_t = t1
+
+    def add_frames(self, frames, t_start, t_end, t=None) -> None:
+        """Blurred grey frames (N, H, W) float32 with exposure times (int64 ns, common clock)."""
+        o = self.owner
+        frames = np.asarray(frames, np.float32)
+        if frames.ndim != 3 or frames.shape[1:] != (o.height, o.width):
+            raise InputError(f"{self.what}: frames have shape {frames.shape}, expected (N, {o.height}, {o.width})")
+        ts, te = np.asarray(t_start), np.asarray(t_end)
+        for nm, a in (("t_start", ts), ("t_end", te)):
+            if a.shape != (frames.shape[0],) or a.dtype.kind not in "iu":
+                raise InputError(f"{self.what}: frames {nm} must be {frames.shape[0]} int64 ns times")
+        ts, te = ts.astype(np.int64), te.astype(np.int64)
+        t = (ts + (te - ts) // 2) if t is None else np.asarray(t).astype(np.int64)
+        if frames.shape[0] == 0:
+            return
+        g = self.group.create_group("frames")
+        g.create_dataset("frames", data=frames, chunks=(1,) + frames.shape[1:], compression="gzip",
+                         compression_opts=1, shuffle=True)
+        for nm, a in (("t_start", ts), ("t_end", te), ("t", t)):
+            g.create_dataset(nm, data=a)
+
+    def set_dl_windows(self, edges, windows) -> None:
+        """Pre-binned dL windows (imported EvDNeRF sets without raw events)."""
+        o = self.owner
+        edges = np.asarray(edges)
+        windows = np.asarray(windows, np.float32)
+        if edges.dtype.kind not in "iu" or edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
+            raise InputError(f"{self.what}: dl edges must be a strictly increasing int64 array of >= 2 times")
+        if windows.shape != (edges.size - 1, o.height, o.width):
+            raise InputError(f"{self.what}: dl windows have shape {windows.shape}, expected "
+                             f"({edges.size - 1}, {o.height}, {o.width})")
+        if not np.all(np.isfinite(windows)):
+            raise InputError(f"{self.what}: dl windows contain NaN or inf")
+        g = self.group.create_group("dl")
+        g.create_dataset("edges", data=edges.astype(np.int64))
+        g.create_dataset("windows", data=windows, chunks=(1, o.height, o.width), compression="gzip",
+                         compression_opts=1, shuffle=True)
+        self.has_events = False
+
+    def _count_before(self, t_end: int) -> int:
+        """Number of stored events with t < t_end (reads one index bin)."""
+        if self.n == 0 or t_end > self.last_t:
+            return self.n
+        o = self.owner
+        index = np.concatenate(self._index_parts) if self._index_parts else np.zeros(1, np.int64)
+        k = max(0, (t_end - o.t_start) // o.index_step_ns)
+        lo = int(index[min(k, index.size - 1)])
+        hi = int(index[k + 1]) if k + 1 < index.size else self.n
+        t = self._ds["t"][lo:hi]
+        return lo + int(np.searchsorted(t, t_end, "left"))
+
+    def finish(self, t_end: int) -> None:
+        o = self.owner
+        ds = self._datasets() if self.has_events else None
+        n_end = self._count_before(t_end)
+        if ds is not None and n_end < self.n:          # drop what lies past the end of the window
+            for d in ds.values():
+                d.resize((n_end,))
+            self.n = n_end
+        n_bins = max(1, -(-(t_end - o.t_start) // o.index_step_ns))
+        index = np.concatenate(self._index_parts) if self._index_parts else np.zeros(0, np.int64)
+        index = np.minimum(index[:n_bins + 1], self.n)
+        if index.size < n_bins + 1:
+            index = np.concatenate([index, np.full(n_bins + 1 - index.size, self.n, np.int64)])
+        index[-1] = self.n if ds is not None else 0
+        if ds is not None:
+            self.group["events"].create_dataset("index", data=index)
+        self.group.attrs["num_events"] = int(self.n)
+        self.group.attrs["has_events"] = bool(self.has_events)
+
+
+class TrainingSetWriter:
+    """Writes the layout above into `path` (give it a temporary path from
+    :func:`evdnerf_ros.atomic.atomic_output`, or use :func:`write_training_set`).
+
+    ``t_end`` may be left None while streaming and given to :meth:`finish`; events at or
+    after it are then dropped from every view (the automatic motion end of `convert`).
+    """
+
+    def __init__(self, path, *, width: int, height: int, c_pos: float, c_neg: float, t_start: int,
+                 t_end: int | None = None, eps: float | None = None, downsample: int = 1,
+                 compression: str = "scaleoffset", index_step_ns: int = INDEX_STEP_NS,
+                 chunk: int = EVENT_CHUNK):
+        for nm, v in (("width", width), ("height", height)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 < int(v) <= 65535:
+                raise InputError(f"training set: {nm} must be an integer in [1, 65535], got {v!r}")
+        if not (math.isfinite(c_pos) and math.isfinite(c_neg) and c_pos > 0 and c_neg > 0):
+            raise InputError(f"training set: thresholds must be finite and > 0, got C+={c_pos}, C-={c_neg}")
+        _filters(compression)
+        self.width, self.height = int(width), int(height)
+        self.c_pos, self.c_neg, self.eps = float(c_pos), float(c_neg), eps
+        self.t_start = int(t_start)
+        self.t_end = None if t_end is None else int(t_end)
+        if self.t_end is not None and self.t_end <= self.t_start:
+            raise InputError(f"training set: t_end={self.t_end} must be after t_start={self.t_start}")
+        self.downsample = int(downsample)
+        self.compression = compression
+        self.index_step_ns = int(index_step_ns)
+        self.chunk = int(chunk)
+        self.path = Path(path)
+        self.file = _h5py().File(self.path, "w")
+        self._views_group = self.file.create_group("views")
+        self.views: dict[str, _ViewWriter] = {}
+
+    def add_view(self, name: str, *, split: str, K, T_world_cam, poses_t=None, poses_T=None,
+                 attrs: dict | None = None) -> _ViewWriter:
+        what = f"training set view {name!r}"
+        if not isinstance(name, str) or not name or "/" in name or name in (".", ".."):
+            raise InputError(f"{what}: a view name must be a non-empty string without '/'")
+        if name in self.views:
+            raise InputError(f"{what}: duplicate view name; view names must be unique")
+        if split not in SPLITS:
+            raise InputError(f"{what}: split {split!r} is not one of {SPLITS}")
+        K = check_K(K, what)
+        T = check_pose(T_world_cam, f"{what}: T_world_cam")
+        g = self._views_group.create_group(name)
+        g.attrs["split"] = split
+        g.attrs["moving"] = poses_t is not None
+        for k, v in (attrs or {}).items():
+            g.attrs[k] = v
+        g.create_dataset("K", data=K)
+        g.create_dataset("T_world_cam", data=T)
+        if poses_t is not None:
+            pt = np.asarray(poses_t)
+            pT = np.asarray(poses_T, np.float64)
+            if pt.ndim != 1 or pt.dtype.kind not in "iu" or pT.shape != (pt.size, 4, 4) or pt.size == 0:
+                raise InputError(f"{what}: poses need (M,) int64 times and (M, 4, 4) matrices")
+            if np.any(np.diff(pt) < 0):
+                raise InputError(f"{what}: pose times are not sorted")
+            for i in range(pt.size):
+                check_pose(pT[i], f"{what}: pose {i} (t={int(pt[i])} ns)")
+            pg = g.create_group("poses")
+            pg.create_dataset("t", data=pt.astype(np.int64))
+            pg.create_dataset("T_world_cam", data=pT)
+        vw = _ViewWriter(self, name, g)
+        self.views[name] = vw
+        return vw
+
+    def finish(self, *, t_end: int | None = None, provenance: dict | None = None,
+               scene_bounds=None, attrs: dict | None = None) -> None:
+        """Cut every view at t_end, write the indexes and the global attributes."""
+        t_end = self.t_end if t_end is None else int(t_end)
+        if t_end is None:
+            raise InputError("training set: t_end is unknown; give it to finish()")
+        if t_end <= self.t_start:
+            raise InputError(f"training set: t_end={t_end} must be after t_start={self.t_start}")
+        if self.t_end is not None and t_end > self.t_end:
+            raise InputError(f"training set: t_end={t_end} is after the declared t_end={self.t_end}")
+        if not self.views:
+            raise InputError("training set: no views")
+        for vw in self.views.values():
+            vw.finish(t_end)
+        a = self.file.attrs
+        a.update(layout=LAYOUT, layout_version=LAYOUT_VERSION, time_unit="ns", width=self.width,
+                 height=self.height, c_pos=self.c_pos, c_neg=self.c_neg, t_start=np.int64(self.t_start),
+                 t_end=np.int64(t_end), index_step_ns=np.int64(self.index_step_ns),
+                 downsample=self.downsample, compression=self.compression,
+                 view_names=json.dumps(list(self.views)))
+        if self.eps is not None:
+            a["eps"] = float(self.eps)
+        if scene_bounds is not None:
+            b = np.asarray(scene_bounds, np.float64)
+            if b.shape != (2, 3) or not np.all(np.isfinite(b)) or np.any(b[1] < b[0]):
+                raise InputError(f"training set: scene_bounds must be [[xmin, ymin, zmin], [xmax, ymax, zmax]], "
+                                 f"got {np.asarray(scene_bounds).tolist()}")
+            a["scene_bounds"] = b
+        for k, v in (attrs or {}).items():
+            a[k] = v
+        self.file.create_dataset("provenance", data=json.dumps(provenance or {}, indent=1, default=_json_default))
+        self.t_end = t_end
+
+    def close(self) -> None:
+        if self.file is not None:
+            self.file.close()
+            self.file = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+def _json_default(o):
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+@dataclass
+class ViewData:
+    """One view for :func:`write_training_set` (in-memory data)."""
+
+    name: str
+    split: str
+    K: np.ndarray
+    T_world_cam: np.ndarray
+    events: np.ndarray | None = None
+    poses_t: np.ndarray | None = None
+    poses_T: np.ndarray | None = None
+    frames: dict | None = None            # frames, t_start, t_end[, t]
+    dl_edges: np.ndarray | None = None
+    dl_windows: np.ndarray | None = None
+    attrs: dict = field(default_factory=dict)
+
+
+def write_training_set(path, views: list[ViewData], *, width: int, height: int, c_pos: float, c_neg: float,
+                       t_start: int, t_end: int, eps: float | None = None, downsample: int = 1,
+                       provenance: dict | None = None, scene_bounds=None, compression: str = "scaleoffset",
+                       overwrite: bool = False) -> Path:
+    """Write a whole training set from in-memory views, atomically."""
+    with atomic_output(path, overwrite=overwrite) as tmp:
+        with TrainingSetWriter(tmp, width=width, height=height, c_pos=c_pos, c_neg=c_neg, t_start=t_start,
+                               t_end=t_end, eps=eps, downsample=downsample, compression=compression) as w:
+            for v in views:
+                vw = w.add_view(v.name, split=v.split, K=v.K, T_world_cam=v.T_world_cam, poses_t=v.poses_t,
+                                poses_T=v.poses_T, attrs=v.attrs)
+                if v.events is not None:
+                    for i in range(0, max(v.events.size, 1), READ_BLOCK):
+                        vw.append(v.events[i:i + READ_BLOCK])
+                if v.frames is not None:
+                    vw.add_frames(v.frames["frames"], v.frames["t_start"], v.frames["t_end"], v.frames.get("t"))
+                if v.dl_windows is not None:
+                    if v.events is not None and v.events.size:
+                        raise InputError(f"view {v.name}: give either raw events or dl windows, not both")
+                    vw.set_dl_windows(v.dl_edges, v.dl_windows)
+            w.finish(t_end=t_end, provenance=provenance, scene_bounds=scene_bounds)
+    return Path(path)
+
+
+# =========================================================================== reading
+
+
+@dataclass
+class ViewInfo:
+    name: str
+    index: int
+    split: str
+    K: np.ndarray
+    T_world_cam: np.ndarray
+    num_events: int
+    has_events: bool
+    offset_ns: int | None
+    moving: bool
+
+
+class TrainingSet:
+    """Read-only access to a training-set .h5 (see the module doc for the layout).
+
+    ``view`` arguments take a view name or its position in :attr:`views`. Times are int64
+    ns in the set's common clock; windows are half-open [t0, t1).
+    """
+
+    def __init__(self, path, *, cache_mb: int = 16):
+        self.path = Path(path)
+        h5py = _h5py()
+        if not self.path.is_file():
+            raise InputError(f"{self.path}: no such training set file")
+        try:
+            self._f = h5py.File(self.path, "r", rdcc_nbytes=int(cache_mb) << 20, rdcc_nslots=10007)
+        except OSError as exc:
+            raise FormatError(f"not a readable HDF5 file ({exc})", source=str(self.path)) from None
+        try:
+            self._load()
+        except BaseException:
+            self.close()
+            raise
+
+    def _load(self):
+        f, where = self._f, str(self.path)
+        a = f.attrs
+        if a.get("layout") != LAYOUT:
+            raise FormatError(f"not a training set (root attribute layout must be {LAYOUT!r}; files written "
+                              "by `evdnerf convert` or `evdnerf import-evdnerf` are)", source=where)
+        if int(a.get("layout_version", -1)) != LAYOUT_VERSION:
+            raise FormatError(f"layout_version {a.get('layout_version')!r} is not supported (this toolkit "
+                              f"reads {LAYOUT_VERSION})", source=where)
+        try:
+            self.width, self.height = int(a["width"]), int(a["height"])
+            self.c_pos, self.c_neg = float(a["c_pos"]), float(a["c_neg"])
+            self.t_start, self.t_end = int(a["t_start"]), int(a["t_end"])
+            self.index_step_ns = int(a["index_step_ns"])
+            names = json.loads(a["view_names"])
+        except (KeyError, ValueError) as exc:
+            raise FormatError(f"missing or bad root attribute ({exc})", source=where) from None
+        self.eps = float(a["eps"]) if "eps" in a else None
+        self.downsample = int(a.get("downsample", 1))
+        self.scene_bounds = np.asarray(a["scene_bounds"], np.float64) if "scene_bounds" in a else None
+        self._infos: dict[str, ViewInfo] = {}
+        self._index: dict[str, np.ndarray] = {}
+        for i, name in enumerate(names):
+            if f"views/{name}" not in f:
+                raise FormatError(f"view {name!r} is listed in view_names but has no group views/{name}",
+                                  source=where)
+            g = f["views"][name]
+            info = ViewInfo(name=name, index=i, split=str(g.attrs["split"]), K=g["K"][()],
+                            T_world_cam=g["T_world_cam"][()], num_events=int(g.attrs["num_events"]),
+                            has_events=bool(g.attrs.get("has_events", True)),
+                            offset_ns=int(g.attrs["offset_ns"]) if "offset_ns" in g.attrs else None,
+                            moving="poses" in g)
+            if info.has_events:
+                if "events" not in g or "index" not in g["events"]:
+                    raise FormatError(f"view {name}: no events/ group with an index", source=where)
+                idx = g["events/index"][()]
+                if idx.size < 2 or idx[-1] != info.num_events or g["events/t"].shape[0] != info.num_events:
+                    raise FormatError(f"view {name}: the time index does not match the {info.num_events} "
+                                      "events; the file is damaged", source=where)
+                self._index[name] = idx
+            self._infos[name] = info
+        self.views: list[str] = list(names)
+
+    # ----- lifecycle
+    def close(self) -> None:
+        f, self._f = getattr(self, "_f", None), None
+        if f is not None:
+            f.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+    def _file(self):
+        if self._f is None:
+            raise InputError(f"{self.path}: training set is closed")
+        return self._f
+
+    # ----- metadata
+    def _name(self, view) -> str:
+        if isinstance(view, (int, np.integer)) and not isinstance(view, bool):
+            if not 0 <= int(view) < len(self.views):
+                raise InputError(f"{self.path}: view index {view} out of range (0..{len(self.views) - 1})")
+            return self.views[int(view)]
+        if view not in self._infos:
+            raise InputError(f"{self.path}: no view {view!r}; views: {', '.join(self.views)}")
+        return view
+
+    def info(self, view) -> ViewInfo:
+        return self._infos[self._name(view)]
+
+    @property
+    def train_views(self) -> list[str]:
+        return [v for v in self.views if self._infos[v].split == "train"]
+
+    @property
+    def val_views(self) -> list[str]:
+        return [v for v in self.views if self._infos[v].split == "val"]
+
+    def split(self, view) -> str:
+        return self.info(view).split
+
+    @property
+    def thresholds(self) -> tuple[float, float]:
+        return self.c_pos, self.c_neg
+
+    @property
+    def time_range(self) -> tuple[int, int]:
+        return self.t_start, self.t_end
+
+    @property
+    def duration_ns(self) -> int:
+        return self.t_end - self.t_start
+
+    def normalized_time(self, t_ns) -> np.ndarray:
+        """(t - t_start) / (t_end - t_start) as float64, from int64 differences (0 .. 1)."""
+        return (np.asarray(t_ns, np.int64) - self.t_start) / float(self.t_end - self.t_start)
+
+    def K(self, view=None) -> np.ndarray:
+        """Intrinsics of a view, or (view=None) the one K shared by all views."""
+        if view is not None:
+            return self.info(view).K.copy()
+        Ks = [self._infos[v].K for v in self.views]
+        if any(not np.array_equal(Ks[0], k) for k in Ks[1:]):
+            raise InputError(f"{self.path}: views have different intrinsics; ask per view with K(view)")
+        return Ks[0].copy()
+
+    def pose(self, view) -> np.ndarray:
+        """The view's static T_world_cam (4x4, OpenCV axes)."""
+        return self.info(view).T_world_cam.copy()
+
+    def poses(self, view) -> tuple[np.ndarray, np.ndarray] | None:
+        """A moving camera's trajectory (t (M,) int64, T_world_cam (M, 4, 4)), or None when static."""
+        g = self._file()["views"][self._name(view)]
+        if "poses" not in g:
+            return None
+        return g["poses/t"][()], g["poses/T_world_cam"][()]
+
+    def num_events(self, view) -> int:
+        return self.info(view).num_events
+
+    @property
+    def provenance(self) -> dict:
+        f = self._file()
+        if "provenance" not in f:
+            return {}
+        raw = f["provenance"][()]
+        return json.loads(raw.decode() if isinstance(raw, bytes) else raw)
+
+    def frames(self, view) -> dict | None:
+        """Blurred frames {frames, t_start, t_end, t} in the common clock, or None."""
+        g = self._file()["views"][self._name(view)]
+        if "frames" not in g:
+            return None
+        return {k: g["frames"][k][()] for k in ("frames", "t_start", "t_end", "t")}
+
+    def dl_windows(self, view) -> tuple[np.ndarray, np.ndarray] | None:
+        """Pre-binned (edges, windows) of an imported frame-only view, or None."""
+        g = self._file()["views"][self._name(view)]
+        if "dl" not in g:
+            return None
+        return g["dl/edges"][()], g["dl/windows"][()]
+
+    # ----- events
+    def _require_events(self, name: str) -> None:
+        if not self._infos[name].has_events:
+            raise InputError(f"{self.path}: view {name} holds pre-binned dL windows only (imported from "
+                             "EvDNeRF data_frames without raw events); use log_change / log_change_stack on "
+                             "its window edges, see dl_windows()")
+
+    def _bound(self, name: str, t: int) -> int:
+        """Number of events of the view with time < t: one index lookup and a binary search in
+        the events of one index bin (never a scan)."""
+        idx = self._index[name]
+        n = int(idx[-1])
+        if t <= self.t_start:
+            return 0
+        if t >= self.t_end:
+            return n
+        k = (t - self.t_start) // self.index_step_ns
+        lo, hi = int(idx[k]), int(idx[k + 1])
+        if lo == hi or (t - self.t_start) % self.index_step_ns == 0:
+            return lo
+        ts = self._file()["views"][name]["events/t"][lo:hi]
+        return lo + int(np.searchsorted(ts, t, "left"))
+
+    def index_range(self, view, t0: int | None = None, t1: int | None = None) -> tuple[int, int]:
+        """[i0, i1): the positions of the events with t0 <= t < t1 (None: the set's range)."""
+        name = self._name(view)
+        self._require_events(name)
+        t0 = self.t_start if t0 is None else int(t0)
+        t1 = self.t_end if t1 is None else int(t1)
+        i0 = self._bound(name, t0)
+        return i0, max(i0, self._bound(name, t1))
+
+    def _read(self, name: str, i0: int, i1: int) -> np.ndarray:
+        out = np.empty(i1 - i0, EVENT_DTYPE)
+        if i1 > i0:
+            g = self._file()["views"][name]["events"]
+            for k in ("t", "x", "y", "p"):
+                out[k] = g[k][i0:i1]
+        return out
+
+    def events(self, view, t0: int | None = None, t1: int | None = None) -> np.ndarray:
+        """Events of the view with t0 <= t < t1 (EVENT_DTYPE; None: the whole range)."""
+        name = self._name(view)
+        i0, i1 = self.index_range(name, t0, t1)
+        return self._read(name, i0, i1)
+
+    def iter_events(self, view, t0: int | None = None, t1: int | None = None, *, block: int | None = None):
+        """The events of [t0, t1) in blocks of at most `block` events (default READ_BLOCK;
+        bounded memory)."""
+        block = READ_BLOCK if block is None else max(1, int(block))
+        name = self._name(view)
+        i0, i1 = self.index_range(name, t0, t1)
+        for a in range(i0, i1, block):
+            yield self._read(name, a, min(i1, a + block))
+
+    def _check_window(self, t0, t1):
+        t0, t1 = int(t0), int(t1)
+        if t1 <= t0:
+            raise InputError(f"window [{t0}, {t1}) ns is empty; t1 must be after t0")
+        return t0, t1
+
+    def log_change(self, view, t0: int, t1: int) -> np.ndarray:
+        """(H, W) float32 dL = C+ N+ - C- N- of the events in [t0, t1) (paper Eq. 5)."""
+        return self.log_change_stack(view, np.array(self._check_window(t0, t1), np.int64))[0]
+
+    def log_change_stack(self, view, edges) -> np.ndarray:
+        """(K, H, W) float32 dL images of the K windows [edges[k], edges[k+1]), streamed in blocks."""
+        name = self._name(view)
+        edges = np.asarray(edges)
+        if edges.ndim != 1 or edges.size < 2 or edges.dtype.kind not in "iu" or np.any(np.diff(edges) <= 0):
+            raise InputError("window edges must be a strictly increasing 1-D int64 array of >= 2 times")
+        edges = edges.astype(np.int64)
+        W, H = self.width, self.height
+        K, P = edges.size - 1, W * H
+        if not self._infos[name].has_events:
+            return self._dl_from_windows(name, edges)
+        counts = np.zeros((K, H, W, 2), np.int64 if K * P < (1 << 22) else np.int32)
+        flat_counts = counts.reshape(-1)
+        for ev in self.iter_events(name, int(edges[0]), int(edges[-1])):
+            k = np.searchsorted(edges, ev["t"], "right") - 1
+            ka, kb = int(k[0]), int(k[-1])
+            flat = ((k - ka) * P + ev["y"].astype(np.int64) * W + ev["x"]) * 2 + (ev["p"] < 0)
+            part = np.bincount(flat, minlength=(kb - ka + 1) * P * 2)
+            flat_counts[ka * P * 2:(kb + 1) * P * 2] += part.astype(counts.dtype, copy=False)
+        return (self.c_pos * counts[..., 0] - self.c_neg * counts[..., 1]).astype(np.float32)
+
+    def _dl_from_windows(self, name: str, edges: np.ndarray) -> np.ndarray:
+        dl_edges, windows = self.dl_windows(name)
+        pos = np.searchsorted(dl_edges, edges)
+        if np.any(pos >= dl_edges.size) or not np.array_equal(dl_edges[np.minimum(pos, dl_edges.size - 1)], edges):
+            raise InputError(f"{self.path}: view {name} holds pre-binned dL windows only; windows must start "
+                             f"and end on its edges ({dl_edges.size} edges, from {int(dl_edges[0])} to "
+                             f"{int(dl_edges[-1])} ns)")
+        out = np.empty((pos.size - 1,) + windows.shape[1:], np.float32)
+        for j in range(pos.size - 1):
+            a, b = int(pos[j]), int(pos[j + 1])
+            out[j] = windows[a] if b - a == 1 else windows[a:b].sum(0, dtype=np.float64)
+        return out
+
+    def event_pixels(self, view, t0: int, t1: int) -> np.ndarray:
+        """Sorted flat pixel indices (y * width + x, int64) that have at least one event in
+        [t0, t1): the candidates for the trainer's positive rays."""
+        t0, t1 = self._check_window(t0, t1)
+        name = self._name(view)
+        P = self.width * self.height
+        if not self._infos[name].has_events:
+            return np.flatnonzero(self.log_change(name, t0, t1).reshape(-1) != 0).astype(np.int64)
+        hit = np.zeros(P, bool)
+        for ev in self.iter_events(name, t0, t1):
+            hit[ev["y"].astype(np.int64) * self.width + ev["x"]] = True
+        return np.flatnonzero(hit).astype(np.int64)
+
+    def __repr__(self) -> str:
+        return (f"TrainingSet({str(self.path)!r}: {len(self.views)} views, {self.width}x{self.height}, "
+                f"[{self.t_start}, {self.t_end}) ns)")
