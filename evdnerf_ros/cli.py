@@ -100,6 +100,21 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _cmd_sync(args) -> int:
+    from .session.sync import run_sync
+    from .units import parse_duration_ns
+
+    extra = {k: v for k, v in (("events_topic", args.events_topic),
+                               ("trigger_topic", args.trigger_topic)) if v is not None}
+    result = run_sync(args.session, bin_ns=parse_duration_ns(args.bin, name="--bin"),
+                      method=args.method, reference_view=args.reference,
+                      refine=not args.no_refine, plot_path=args.plot,
+                      log=None if args.json else print, **extra)
+    if args.json:
+        print(json.dumps(result, indent=2, default=str))
+    return 0
+
+
 def _cmd_convert(args) -> int:
     from .session.convert import run_convert
     from .units import parse_duration_ns
@@ -240,6 +255,27 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker processes; 0 = one per CPU (default %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing session folder")
     p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser("sync", help="align the views' clocks of a session",
+                       description="Find each view's motion onset in its own clock: from "
+                                   "EXT_TRIGGER edges in the event stream (exact), the firmware's "
+                                   "START TimeReference, or the event-rate curve (robust onset "
+                                   "with hot-pixel removal, refined by cross-correlating rate "
+                                   "curves at 100 us). Writes the offsets into session.yaml "
+                                   "(never the bags), reports how far the methods disagree and "
+                                   "saves a plot of the aligned rate curves. Rate-based sync "
+                                   "needs a sudden motion onset.")
+    p.add_argument("session", help="session folder")
+    p.add_argument("--bin", default="1ms", help="event-rate bin (default %(default)s)")
+    p.add_argument("--method", choices=["auto", "trigger", "start", "rate", "onset"],
+                   default="auto", help="force one method (default: the best each view has)")
+    p.add_argument("--reference", help="reference view for refinement (default: first training view)")
+    p.add_argument("--no-refine", action="store_true", help="skip the cross-correlation refinement")
+    p.add_argument("--plot", help="aligned rate plot path (default SESSION/sync.png)")
+    p.add_argument("--events-topic", help="event topic (default from session.yaml)")
+    p.add_argument("--trigger-topic", help="servo START/DONE topic (default from session.yaml)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.set_defaults(func=_cmd_sync)
 
     p = sub.add_parser("convert", help="turn a synced session into a training set",
                        description="Decode every view, apply the sync offsets (t = 0 at the "

@@ -171,6 +171,12 @@ def test_simulate_convert_import_cli(tmp_path, capsys):
     assert main(["convert", str(session), "-o", str(tmp_path / "t.h5"), "--start", "0"]) == 2
     assert main(["convert", str(session), "-o", str(tmp_path / "t.h5"),
                  "--offsets", "ground-truth"]) == 0
+    capsys.readouterr()
+    assert main(["sync", str(session), "--json"]) == 0
+    synced = json.loads(capsys.readouterr().out)
+    assert {v["method"] for v in synced["views"].values()} == {"trigger"}
+    assert (session / "sync.png").exists()
+    assert main(["convert", str(session), "-o", str(tmp_path / "synced.h5")]) == 0
     assert main(["convert", str(session), "-o", str(tmp_path / "paper"), "--format", "evdnerf",
                  "--offsets", "ground-truth"]) == 0
     assert (tmp_path / "paper" / "transforms_train.json").exists()
