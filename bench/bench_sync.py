@@ -32,7 +32,8 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from evdnerf_ros.session.sync import SyncOptions, perturb_session, sync_session  # noqa: E402
+from evdnerf_ros.session.sync import SyncOptions, sync_session  # noqa: E402
+from evdnerf_ros.sim.perturb import perturb_session  # noqa: E402
 from evdnerf_ros.sim.scene import preset_path  # noqa: E402
 from evdnerf_ros.sim.session import SimulationOptions, simulate_session  # noqa: E402
 

@@ -10,7 +10,7 @@ import pytest
 from conftest import random_events
 from evdnerf_ros.cli import main
 from evdnerf_ros.events import make_triggers
-from evdnerf_ros.io.event_files import EventFile, read_event_file
+from evdnerf_ros.io.event_files import read_event_file
 from evdnerf_ros.io.npz import write_npz
 
 

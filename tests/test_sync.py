@@ -13,7 +13,8 @@ from evdnerf_ros.events.types import make_events
 from evdnerf_ros.io.messages import time_reference
 from evdnerf_ros.io.rosbag2 import BagWriter, open_bag, read_events
 from evdnerf_ros.session.layout import load_session
-from evdnerf_ros.session.sync import (correlate_onsets, detect_onset, hot_pixels, perturb_session,
+from evdnerf_ros.sim.perturb import perturb_session
+from evdnerf_ros.session.sync import (correlate_onsets, detect_onset, hot_pixels,
                                       run_sync)
 from evdnerf_ros.sim.scene import preset_path
 from evdnerf_ros.sim.session import SimulationOptions, simulate_session

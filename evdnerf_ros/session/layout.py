@@ -63,6 +63,20 @@ class Session:
         raise InputError(f"{self.root}: no view {name!r}; views: {', '.join(v.name for v in self.views)}")
 
 
+DEFAULT_EVENTS_TOPIC = "/event_camera/events"
+DEFAULT_TRIGGER_TOPIC = "/rig/servo/trigger"
+
+
+def session_topics(session: "Session", events_topic: str | None = None,
+                   trigger_topic: str | None = None) -> tuple[str, str]:
+    """(events topic, servo START/DONE topic): given ones, else session.yaml's, else defaults."""
+    cam = session.data.get("camera") or {}
+    ev = events_topic or (cam.get("topics") or {}).get("events") or DEFAULT_EVENTS_TOPIC
+    servo = session.data.get("servo") or {}
+    tr = trigger_topic or servo.get("trigger") or DEFAULT_TRIGGER_TOPIC
+    return str(ev), str(tr)
+
+
 def session_yaml_path(root) -> Path:
     return Path(root) / "session.yaml"
 
