@@ -7,7 +7,10 @@ It grows with each part of the toolkit. Today:
 2. convert the first view's recording into every container we speak, read each back and
    check it is bit-exact;
 3. draw each view's event image at mid-swing and the event-rate curves of all views (their
-   onsets differ by the injected clock offsets: what `sync` will align).
+   onsets differ by the injected clock offsets);
+4. sync the views (trigger edges, START times, event-rate onsets) and compare the recovered
+   offsets with the injected ones;
+5. convert the synced session into a training set (TRAIN.h5) and read a dL image back.
 """
 
 from __future__ import annotations
@@ -24,6 +27,9 @@ from .errors import EvdnerfError
 from .events import event_image, event_rate, plot_event_rate, save_png, time_slice
 from .io.event_files import EventFile, read_event_file, write_event_file
 from .io.info import describe, format_info
+from .io.trainingset import TrainingSet
+from .session.convert import run_convert
+from .session.sync import run_sync
 from .sim.session import SimulationOptions, simulate_session
 
 SCENE = "fork"
@@ -47,8 +53,8 @@ def run_demo(out_dir: Path, *, overwrite: bool = False, log=print) -> dict:
         tmp.mkdir()
         summary = _run(tmp, out_dir, log)
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
-    log(f"demo finished: outputs in {out_dir}/ (session/, conversions/, event_images.png, "
-        "event_rates.png, summary.json)")
+    log(f"demo finished: outputs in {out_dir}/ (session/ with sync.png, conversions/, train.h5, "
+        "event_images.png, event_rates.png, summary.json)")
     return summary
 
 
@@ -91,6 +97,22 @@ def _run(out: Path, final_dir: Path, log) -> dict:
     save_png(out / "event_images.png", sheet, upscale=3)
     plot_event_rate(out / "event_rates.png", curves,
                     title="event rate per view (5 ms bins), each in its own clock", t_origin_ns=0)
+
+    synced = run_sync(out / "session", log=log)
+    motion_start = session["time"]["motion_start_ns"]
+    errors_us = {v["name"]: (synced["views"][v["name"]]["offset_ns"]
+                             - v["ground_truth"]["clock_offset_ns"] - motion_start) / 1000
+                 for v in views}
+    log("sync error against the injected offsets: "
+        + ", ".join(f"{k} {e:+.1f} us" for k, e in errors_us.items()))
+    summary["sync_error_us"] = errors_us
+
+    run_convert(out / "session", out / "train.h5", log=log)
+    with TrainingSet(out / "train.h5") as ts:
+        t0, t1 = ts.time_range
+        d_l = ts.log_change(ts.views[0], t0, t1)
+        summary["train_h5"] = {"views": len(ts.views), "time_range_ns": [int(t0), int(t1)],
+                               "dl_abs_sum_view0": float(abs(d_l).sum())}
     return summary
 
 

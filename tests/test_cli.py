@@ -141,7 +141,9 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert summary["views"] == 4 and min(summary["events_per_view"]) > 1000
     assert all(v["bit_exact"] for v in summary["round_trips"].values())
     assert (out / "event_images.png").exists() and (out / "event_rates.png").exists()
-    assert (out / "session" / "session.yaml").exists()
+    assert (out / "session" / "session.yaml").exists() and (out / "session" / "sync.png").exists()
+    assert all(abs(e) <= 1.0 for e in summary["sync_error_us"].values())
+    assert summary["train_h5"]["views"] == 4 and summary["train_h5"]["dl_abs_sum_view0"] > 0
     assert main(["demo", "-o", str(out)]) == 2          # refuses to overwrite
     assert "already exists" in capsys.readouterr().err
 
