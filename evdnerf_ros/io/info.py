@@ -8,6 +8,8 @@ from ..errors import InputError
 from ..units import format_ns
 from .event_files import DEFAULT_TOPIC, container_kind, read_event_file
 
+EVENT_TYPES = ("event_camera_msgs/msg/EventPacket", "dvs_msgs/msg/EventArray")
+
 
 def describe(path, *, topic: str | None = None) -> dict:
     """A JSON-ready summary: container, topics (bags), and the event stream's statistics."""
@@ -48,8 +50,6 @@ def describe(path, *, topic: str | None = None) -> dict:
     }
     return info
 
-
-EVENT_TYPES = ("event_camera_msgs/msg/EventPacket", "dvs_msgs/msg/EventArray")
 
 
 def format_info(info: dict) -> str:
