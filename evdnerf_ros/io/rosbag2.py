@@ -47,6 +47,8 @@ summarises a bag. Damaged files raise FormatError naming the file.
 
 from __future__ import annotations
 
+import abc
+
 import os
 import sqlite3
 import struct
@@ -142,7 +144,7 @@ def _check_time(t_ns, what):
     return t_ns
 
 
-class _EventBagWriter:
+class _EventBagWriter(abc.ABC):
     """Shared logic of the rosbag2 and ROS 1 writers: atomic output, topics, event packetising."""
 
     _ros1 = False
@@ -160,8 +162,9 @@ class _EventBagWriter:
         self._state = "new"
 
     # ----- lifecycle
-    def _make_writer(self, tmp_path):  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _make_writer(self, tmp_path):
+        ...
 
     def open(self):
         if self._state != "new":
@@ -223,8 +226,9 @@ class _EventBagWriter:
     def typestore(self):
         return ros1_typestore() if self._ros1 else ros2_typestore()
 
-    def _add_connection(self, topic, msgtype):  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _add_connection(self, topic, msgtype):
+        ...
 
     def _connection(self, topic, msgtype):
         _check_topic(topic)

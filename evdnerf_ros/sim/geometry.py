@@ -19,6 +19,8 @@ closed mesh).
 
 from __future__ import annotations
 
+import abc
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,12 +38,13 @@ def _as_rays(o, d):
     return o, d
 
 
-class Primitive:
+class Primitive(abc.ABC):
     convex = True
     kind = "primitive"
 
+    @abc.abstractmethod
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError
+        ...
 
     def corners(self) -> np.ndarray:
         lo, hi = self.bounds()
@@ -52,14 +55,16 @@ class Primitive:
         lo, hi = self.bounds()
         return 0.5 * (lo + hi), float(0.5 * np.linalg.norm(hi - lo))
 
+    @abc.abstractmethod
     def intersect(self, o, d, tmin: float = TMIN):
-        raise NotImplementedError
+        ...
 
+    @abc.abstractmethod
     def normal(self, p, d=None, aux=None) -> np.ndarray:
-        raise NotImplementedError
+        ...
 
     def contains(self, p) -> np.ndarray:
-        raise NotImplementedError
+        ...
 
 
 @dataclass

@@ -10,6 +10,8 @@ raises the error with its message and byte offset. Python code never loops over 
 
 from __future__ import annotations
 
+import abc
+
 import warnings
 from dataclasses import dataclass, field
 
@@ -303,7 +305,7 @@ def drop_warning(source: str, n_events: int, n_triggers: int, reason: str) -> No
                   stacklevel=4)
 
 
-class StreamDecoderBase:
+class StreamDecoderBase(abc.ABC):
     """Splits incoming bytes into whole words, keeps the left-over bytes and the byte offset.
 
     Subclasses set WORD (bytes per word) and DTYPE (the word dtype) and implement
@@ -393,11 +395,13 @@ class StreamDecoderBase:
                 source=self.source, offset=self._offset)
         return Decoded()
 
-    def _count(self, words) -> int:  # pragma: no cover
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _count(self, words) -> int:
+        ...
 
-    def _decode_into(self, words, offset, out):  # pragma: no cover
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _decode_into(self, words, offset, out):
+        ...
 
 
 def run_decode_kernel(kern, words, out, state, report, trig_cap: int = 256):
@@ -455,7 +459,7 @@ def _prime_allocator() -> None:
 ENCODE_CHUNK = 1 << 18
 
 
-class ChunkedEncoder:
+class ChunkedEncoder(abc.ABC):
     """Streaming encoder for the microsecond formats (EVT 3.0 / EVT 2.0).
 
     Subclasses set NAME, MAX_TRIGGER_ID, WORD_DTYPE and `encode_words(us, events, tus,
@@ -474,8 +478,9 @@ class ChunkedEncoder:
         self._last_us = None       # last time written (us after the time base)
 
     @staticmethod
-    def encode_words(us, events, tus, triggers, prev_high, carry):  # pragma: no cover
-        raise NotImplementedError
+    @abc.abstractmethod
+    def encode_words(us, events, tus, triggers, prev_high, carry):
+        ...
 
     def encode(self, events, triggers=None) -> bytes:
         """Encode sorted events (and triggers) that follow everything encoded before."""

@@ -1,0 +1,69 @@
+"""The field interface shared by every backbone.
+
+A field maps a point ``x`` and a normalised time ``t`` to a volume density and a grey
+(linear) intensity:
+
+    forward(x, t) -> (density, grey)
+
+- ``x``: (N, 3) float32, scene-box-normalised coordinates in [-1, 1] (see
+  ``render.normalize_points``); points outside are clamped by the renderer.
+- ``t``: (N, 1) float32 in [0, 1].  It is computed by the caller from int64 nanosecond
+  differences (DESIGN.md), never from float seconds.
+- ``density``: (N,) float32 >= 0, per metre of world distance along the ray.
+- ``grey``: (N,) float32 in (0, 1), linear intensity (no view dependence).
+
+Static-view sample reuse: a training view's camera does not move, so the samples along
+a ray are the same at t_{k-1} and t_k.  Every field therefore offers
+
+    feats = field.space_features(x)      # the time-independent part, computed once
+    density, grey = field.decode(feats, t)
+
+with ``decode(space_features(x), t)`` *bit-identical* to ``forward(x, t)``.  The generic
+fallback (this base class) has ``space_features`` return ``x`` itself and ``decode`` call
+``forward``, i.e. it evaluates the full field twice; backbones with a factorised
+representation (``planes``) override both so that only the time-dependent lookups are
+repeated.  ``evaluate_times(x, times)`` is the convenience wrapper.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import torch
+from torch import nn
+
+
+class DynamicField(nn.Module):
+    """Base class: subclasses implement ``forward`` (and optionally the reuse pair)."""
+
+    #: True where ``space_features``/``decode`` actually save work.
+    reuses_space_features: bool = False
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def space_features(self, x: torch.Tensor) -> Any:
+        """Time-independent features of ``x`` (generic fallback: ``x`` itself)."""
+        return x
+
+    def decode(self, features: Any, t: torch.Tensor):
+        """(density, grey) at time ``t`` from ``space_features(x)``."""
+        return self.forward(features, t)
+
+    def evaluate_times(self, x: torch.Tensor, times: Sequence[torch.Tensor]):
+        """[(density, grey) for each t in ``times``], sharing the space features."""
+        feats = self.space_features(x)
+        return [self.decode(feats, t) for t in times]
+
+
+def as_time_column(t, n: int, device=None) -> torch.Tensor:
+    """A float, (N,), (N, 1) or (1,) time -> (n, 1) float32 tensor."""
+    t = torch.as_tensor(t, dtype=torch.float32, device=device)
+    if t.dim() == 0:
+        return t.reshape(1, 1).expand(n, 1)
+    t = t.reshape(-1, 1)
+    if t.shape[0] == 1:
+        return t.expand(n, 1)
+    if t.shape[0] != n:
+        raise ValueError(f"time has {t.shape[0]} entries for {n} points")
+    return t

@@ -1,0 +1,123 @@
+"""``planes``: a K-Planes / HexPlane-style factorised 4D field in plain PyTorch.
+
+Per scale s (space resolution R_s, time resolution T):
+- 3 space planes  (xy, xz, yz), each (F, R_s, R_s), initialised uniform(a, b);
+- 3 space-time planes (xt, yt, zt), each (F, T, R_s), initialised to **1**, so a point
+  is static until the data says otherwise (and the field is independent of t at init).
+Features are bilinear ``grid_sample`` lookups (``align_corners=True``: -1 and +1 are the
+outermost texel centres), multiplied (Hadamard product) across the six planes, and
+concatenated across scales.  A tiny MLP decodes density (softplus or truncated exp) and
+grey (sigmoid).  No view dependence.
+
+Static-view reuse: ``space_features`` returns the product of the three space planes per
+scale; ``decode`` multiplies in the three time planes and runs the MLP.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .base import DynamicField
+
+_SPACE_PAIRS = ((0, 1), (0, 2), (1, 2))     # xy, xz, yz   (grid x = first, grid y = second)
+
+
+class _TruncExp(torch.autograd.Function):
+    """exp with the gradient clamped (Instant-NGP / K-Planes' density activation)."""
+
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return torch.exp(x)
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        return g * torch.exp(x.clamp(-15.0, 15.0))
+
+
+def trunc_exp(x: torch.Tensor) -> torch.Tensor:
+    return _TruncExp.apply(x.clamp(max=15.0))
+
+
+class PlanesField(DynamicField):
+    reuses_space_features = True
+
+    def __init__(self, resolutions: Sequence[int] = (16, 32, 64), time_resolution: int = 16,
+                 features: int = 16, hidden: int = 64, hidden_layers: int = 1,
+                 density_activation: str = "softplus", density_bias: float = -1.0,
+                 init_range: tuple = (0.1, 0.5), seed: int | None = None):
+        super().__init__()
+        if density_activation not in ("softplus", "trunc_exp"):
+            raise ValueError(f"density_activation must be softplus or trunc_exp, "
+                             f"got {density_activation!r}")
+        self.resolutions = tuple(int(r) for r in resolutions)
+        self.time_resolution = int(time_resolution)
+        self.features = int(features)
+        self.density_activation = density_activation
+        self.density_bias = float(density_bias)
+        gen = torch.Generator().manual_seed(seed) if seed is not None else None
+        a, b = init_range
+        self.space_planes = nn.ParameterList()
+        self.time_planes = nn.ParameterList()
+        for r in self.resolutions:
+            sp = torch.rand(3, self.features, r, r, generator=gen) * (b - a) + a
+            self.space_planes.append(nn.Parameter(sp))
+            # rows = time, columns = the space axis
+            self.time_planes.append(nn.Parameter(
+                torch.ones(3, self.features, self.time_resolution, r)))
+        layers: list[nn.Module] = []
+        d = self.features * len(self.resolutions)
+        for _ in range(int(hidden_layers)):
+            layers += [nn.Linear(d, hidden), nn.ReLU()]
+            d = hidden
+        layers.append(nn.Linear(d, 2))
+        self.decoder = nn.Sequential(*layers)
+        if gen is not None:
+            with torch.no_grad():
+                for m in self.decoder:
+                    if isinstance(m, nn.Linear):
+                        bound = 1.0 / m.in_features ** 0.5
+                        m.weight.uniform_(-bound, bound, generator=gen)
+                        m.bias.uniform_(-bound, bound, generator=gen)
+
+    @staticmethod
+    def _lookup(planes: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+        """planes (3, F, H, W), coords (3, N, 2) in [-1, 1] -> (3, N, F)."""
+        out = F.grid_sample(planes, coords.unsqueeze(2), mode="bilinear",
+                            padding_mode="border", align_corners=True)   # (3, F, N, 1)
+        return out.squeeze(-1).transpose(1, 2)
+
+    def space_features(self, x: torch.Tensor) -> list[torch.Tensor]:
+        x = x.to(torch.float32)
+        coords = torch.stack([x[:, [i, j]] for i, j in _SPACE_PAIRS])       # (3, N, 2)
+        feats = []
+        for planes in self.space_planes:
+            f = self._lookup(planes, coords)
+            feats.append(f[0] * f[1] * f[2])
+        return [x, feats]
+
+    def decode(self, features, t: torch.Tensor):
+        x, feats = features
+        n = x.shape[0]
+        tt = (t.to(torch.float32).reshape(-1, 1).expand(n, 1)) * 2.0 - 1.0
+        # grid x = space coordinate (columns), grid y = time (rows)
+        coords = torch.stack([torch.cat([x[:, i:i + 1], tt], dim=1) for i in range(3)])
+        out = []
+        for planes, sf in zip(self.time_planes, feats):
+            f = self._lookup(planes, coords)
+            out.append(sf * (f[0] * f[1] * f[2]))
+        raw = self.decoder(torch.cat(out, dim=1))
+        if self.density_activation == "softplus":
+            density = F.softplus(raw[:, 0] + self.density_bias)
+        else:
+            density = trunc_exp(raw[:, 0] + self.density_bias)
+        grey = torch.sigmoid(raw[:, 1])
+        return density, grey
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor):
+        return self.decode(self.space_features(x), t)
