@@ -50,9 +50,16 @@ def plot_event_rate(path, curves: dict[str, tuple[np.ndarray, np.ndarray]], *,
     if len(curves) > 1:
         ax.legend(fontsize=7)
     fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def save_figure(fig, path) -> Path:
+    """Write a matplotlib figure as PNG atomically and close it (also on error)."""
+    import matplotlib.pyplot as plt
+
     try:
         with atomic_output(path, overwrite=True) as tmp:
             fig.savefig(tmp, dpi=110, format="png")
     finally:
         plt.close(fig)
-    return path
+    return Path(path)

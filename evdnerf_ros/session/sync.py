@@ -108,9 +108,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_output
 from ..errors import InputError
-from ..events.rate import event_rate, plot_event_rate
+from ..events.rate import event_rate, plot_event_rate, save_figure
 from .layout import load_session, session_topics, write_session_yaml
 
 METHODS = ("auto", "trigger", "start", "rate", "onset")
@@ -692,12 +691,7 @@ def plot_aligned(path, views: list[ViewData], records: dict, options: SyncOption
     ax2.set_ylabel("rate / max")
     ax2.set_title(f"around the origin ({fine / 1e3:g} us bins, smoothed)")
     fig.tight_layout()
-    try:
-        with atomic_output(path, overwrite=True) as tmp:
-            fig.savefig(tmp, dpi=110, format="png")
-    finally:
-        plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def run_sync(session_dir, *, bin_ns: int = 1_000_000, method: str = "auto",
