@@ -8,7 +8,7 @@
 - ``OccupancyGrid``: empty-space skipping (from the field or an event footprint).
 """
 
-from .base import DynamicField
+from .base import DynamicField, normalized_time
 from .dnerf import DNeRFField, positional_encoding
 from .occupancy import OccupancyGrid
 from .planes import PlanesField
@@ -29,6 +29,6 @@ def make_field(name: str = "planes", **kwargs) -> DynamicField:
 
 
 __all__ = ["DynamicField", "PlanesField", "DNeRFField", "OccupancyGrid", "BACKBONES",
-           "make_field", "camera_rays", "normalize_points", "ray_box_intersect",
+           "make_field", "normalized_time", "camera_rays", "normalize_points", "ray_box_intersect",
            "render_image", "render_rays", "sample_along_rays", "volume_weights",
            "positional_encoding"]

@@ -27,20 +27,22 @@ repeated.  ``evaluate_times(x, times)`` is the convenience wrapper.
 
 from __future__ import annotations
 
+import abc
 from typing import Any, Sequence
 
 import torch
 from torch import nn
 
 
-class DynamicField(nn.Module):
+class DynamicField(nn.Module, abc.ABC):
     """Base class: subclasses implement ``forward`` (and optionally the reuse pair)."""
 
     #: True where ``space_features``/``decode`` actually save work.
     reuses_space_features: bool = False
 
-    def forward(self, x: torch.Tensor, t: torch.Tensor):  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abc.abstractmethod
+    def forward(self, x: torch.Tensor, t: torch.Tensor):
+        """(N, 3) normalised x, (N, 1) t -> (density (N,), grey (N,))."""
 
     def space_features(self, x: torch.Tensor) -> Any:
         """Time-independent features of ``x`` (generic fallback: ``x`` itself)."""
@@ -54,6 +56,22 @@ class DynamicField(nn.Module):
         """[(density, grey) for each t in ``times``], sharing the space features."""
         feats = self.space_features(x)
         return [self.decode(feats, t) for t in times]
+
+
+def normalized_time(t_ns, t_start_ns: int, t_end_ns: int) -> torch.Tensor:
+    """int64 nanoseconds -> float32 normalised time in [0, 1] (clamped).
+
+    The difference ``t_ns - t_start_ns`` is taken in int64 and only then divided (in
+    float64), so absolute timestamps around 1e4 s keep their nanoseconds (DESIGN.md).
+    """
+    import numpy as np
+
+    t = np.asarray(t_ns, dtype=np.int64)
+    t0, t1 = np.int64(t_start_ns), np.int64(t_end_ns)
+    if t1 <= t0:
+        raise ValueError(f"time range must have end > start, got {t_start_ns}..{t_end_ns}")
+    u = (t - t0).astype(np.float64) / float(t1 - t0)
+    return torch.as_tensor(np.clip(u, 0.0, 1.0), dtype=torch.float32)
 
 
 def as_time_column(t, n: int, device=None) -> torch.Tensor:

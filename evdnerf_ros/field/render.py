@@ -20,8 +20,6 @@ samples and the field's space features (``DynamicField.evaluate_times``).
 
 from __future__ import annotations
 
-from typing import Sequence
-
 import numpy as np
 import torch
 
@@ -53,8 +51,9 @@ def ray_box_intersect(origins: torch.Tensor, dirs: torch.Tensor, box, near: floa
                       far: float = float("inf")):
     """Slab intersection of rays with the box, clipped to [near, far].
 
-    Returns (t_near (N,), t_far (N,), hit (N,) bool); for misses t_near = t_far = near-ish
-    values are meaningless and ``hit`` is False.  Distances are in units of |dir|.
+    Returns (t_near (N,), t_far (N,), hit (N,) bool); for misses both distances are 0 and
+    ``hit`` is False.  Distances are in units of |dir|; a ray starting inside the box
+    enters at max(0, near).
     """
     lo, hi = box_tensors(box, origins.device)
     d = dirs.to(torch.float32)
