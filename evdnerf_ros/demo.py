@@ -58,13 +58,16 @@ def run_demo(out_dir: Path, *, overwrite: bool = False, log=print) -> dict:
     return summary
 
 
-def _run(out: Path, final_dir: Path, log) -> dict:
+def _run(out: Path, final_dir: Path, log_final) -> dict:
+    def log(msg) -> None:  # show the final paths, not the temporary folder being written
+        log_final(str(msg).replace(str(out), str(final_dir)))
+
     start = time.perf_counter()
     session = simulate_session(SCENE, out / "session", OPTIONS, log=log)
     sim_seconds = time.perf_counter() - start
     views = session["views"]
     first = out / "session" / views[0]["bag"]
-    log(format_info(describe(first)).replace(str(out), str(final_dir)))
+    log(format_info(describe(first)))
 
     recorded = read_event_file(first)
     summary = {"scene": SCENE, "views": len(views), "simulate_seconds": round(sim_seconds, 2),
