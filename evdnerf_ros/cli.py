@@ -143,6 +143,14 @@ def _cmd_import_evdnerf(args) -> int:
     return 0
 
 
+def _cmd_report(args) -> int:
+    from .eval.figures import run_report
+
+    result = run_report(args.runs, Path(args.output))
+    print(Path(result["md"]).read_text())
+    return 0
+
+
 def _cmd_demo(args) -> int:
     from .demo import run_demo
 
@@ -322,6 +330,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--c-neg", type=float, help="C- if the dataset does not say")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_import_evdnerf)
+
+    p = sub.add_parser("report", help="events-PSNR against wall time for several training runs",
+                       description="Read RUN/metrics.jsonl of each run and write report.png "
+                                   "(events-PSNR against wall-clock seconds, the all-zero "
+                                   "prediction floor dashed) and report.md (a table).")
+    p.add_argument("runs", nargs="+", help="run folders")
+    p.add_argument("-o", "--output", default=".", help="folder for report.png / report.md")
+    p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser("info", help="summarise an event file or bag",
                        description="Print topics, message types and counts (bags), event count, "

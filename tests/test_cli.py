@@ -189,3 +189,17 @@ def test_simulate_convert_import_cli(tmp_path, capsys):
         assert a.views == b.views
         for v in a.views:
             assert np.array_equal(a.events(v, *a.time_range), b.events(v, *b.time_range))
+
+
+def test_report_cli(tmp_path, capsys):
+    for name, psnr in (("a", 24.0), ("b", 27.5)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "metrics.jsonl").write_text(
+            json.dumps({"iter": 0, "wall_s": 0.5, "val_psnr": 20.0, "val_psnr_zero_floor": 19.0})
+            + "\n" + json.dumps({"iter": 50, "wall_s": 9.0, "val_psnr": psnr,
+                                  "val_psnr_zero_floor": 19.0}) + "\n")
+    assert main(["report", str(tmp_path / "a"), str(tmp_path / "b"), "-o", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "| b | 50 |" in out and "27.50" in out
+    assert (tmp_path / "report.png").stat().st_size > 1000
+    assert main(["report", str(tmp_path / "missing")]) == 2
