@@ -1,0 +1,15 @@
+"""EvDNeRF training: config, ray sampler, event losses, the loop and checkpoints.
+
+``run_train(train_h5, run_dir, ...)`` is the ``evdnerf train`` entry point.
+"""
+
+from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from .config import TrainConfig, resolve_config
+from .losses import bin_bounds, bin_loss, mse_loss, no_event_hinge
+from .sampler import RayBatch, RaySampler, default_box, window_edges
+from .trainer import Trainer, TrainingDivergedError, plane_regularisers, run_train
+
+__all__ = ["TrainConfig", "resolve_config", "bin_bounds", "bin_loss", "mse_loss", "no_event_hinge",
+           "RayBatch", "RaySampler", "default_box", "window_edges", "Trainer",
+           "TrainingDivergedError", "plane_regularisers", "run_train", "CheckpointError",
+           "load_checkpoint", "save_checkpoint"]

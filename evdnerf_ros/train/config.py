@@ -1,0 +1,235 @@
+"""Training configuration: every knob of ``evdnerf train`` in one dataclass.
+
+Defaults live here and nowhere else.  A YAML file holds a mapping of field names to
+values (any subset); an unknown key is an error that names it.  ``field`` holds the
+keyword sizes of the chosen backbone (``evdnerf_ros.field.make_field``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field as dc_field
+from pathlib import Path
+from typing import Any
+
+from ..errors import InputError
+from ..sim.logmap import LOG_EPS
+
+LOSSES = ("bin", "bin_paper", "mse")
+
+#: Keys that may differ between a checkpoint and the resuming run (they do not change
+#: the optimisation itself, only how often it is observed or saved).
+RESUME_FREE_KEYS = ("eval_every", "checkpoint_every", "log_every")
+
+
+@dataclass
+class TrainConfig:
+    # ---- model
+    backbone: str = "planes"
+    """Field backbone: ``planes`` (K-Planes style, default) or ``dnerf`` (the paper's MLPs)."""
+    field: dict = dc_field(default_factory=dict)
+    """Keyword sizes for the backbone (e.g. ``{resolutions: [16, 32], features: 8}``)."""
+
+    # ---- rendering
+    n_samples: int = 48
+    """Samples per ray inside the scene box (stratified during training)."""
+    box: list | None = None
+    """Scene box [[xmin, ymin, zmin], [xmax, ymax, zmax]] in metres; None: the training
+    set's ``scene_bounds`` if present, else a cube around the views' common look-at point
+    of half-size ``box_fraction`` x the mean camera distance."""
+    box_fraction: float = 0.35
+    near: float = 0.0
+    """Near clip (metres along the ray)."""
+    far: float = 1e9
+    """Far clip (metres along the ray)."""
+    background: float = 0.0
+    """Grey of rays that leave the box unoccluded (linear intensity)."""
+    perturb: bool = True
+    """Stratified (random) sample positions within each bin while training."""
+    occupancy_resolution: int = 0
+    """Cells per side of an occupancy grid for empty-space skipping during training
+    (``field.OccupancyGrid``, max density over time); 0 disables."""
+    occupancy_every: int = 100
+    """Iterations between occupancy-grid updates (the first after ``occupancy_warmup``)."""
+    occupancy_warmup: int = 200
+    occupancy_threshold: float = 0.01
+    """Density (per metre) below which a cell counts as empty (the grid is dilated by one cell)."""
+    log_eps: float = LOG_EPS
+    """eps of L = log(I + eps), the toolkit's one log rule (sim.logmap.LOG_EPS)."""
+
+    # ---- rays
+    rays: int = 1024
+    """Rays per iteration."""
+    event_ray_fraction: float = 0.5
+    """Share of the rays through pixels with events in the sampled window (the rest are
+    uniform over the image; a view with no events there falls back to uniform)."""
+
+    crop_warmup_iters: int = 0
+    """For this many first iterations the uniform rays come from a centred crop around
+    each view's event centroid (paper: 2k iterations, 50% crop); 0 disables."""
+    crop_fraction: float = 0.5
+    """Side of that crop as a fraction of the image side."""
+
+    # ---- windows: varied batching and time curriculum
+    windows: list = dc_field(default_factory=lambda: [32, 64, 128])
+    """Number of equal windows the sequence is cut into, per phase (paper: 32 -> 64 -> 128)."""
+    window_switch: list = dc_field(default_factory=lambda: [0.5, 0.75])
+    """Fractions of the run at which the next entry of ``windows`` takes over
+    (len(windows) - 1 increasing values in (0, 1); paper: 100k/200k, 150k/200k)."""
+    time_curriculum: float = 0.1
+    """Fraction of the run over which the usable windows grow from the first
+    ``time_curriculum_min`` to all of them (paper: 20k of 200k); 0 disables."""
+    time_curriculum_min: int = 3
+
+    # ---- loss
+    loss: str = "bin"
+    """``bin``: dead zone on the quantisation bin of the GT change, polarity-aware
+    (positive: [dL, dL+C+), negative: (dL-C-, dL], none: (-C-, C+)), squared distance to
+    the bin centre outside it; ``bin_paper``: the paper code's [dL, dL+C) for every sign;
+    ``mse``: mean((dL_hat/mse_pred_scale - dL/mse_target_scale)^2) (paper code: 2.2 and
+    max|E_train|)."""
+    mse_pred_scale: float = 1.0
+    mse_target_scale: float = 1.0
+    no_event_weight: float = 0.0
+    """Weight of E-NeRF's hinge relu(|dL_hat| - C) on rays whose pixel had no events."""
+    tv_weight: float = 0.0
+    """Total variation on the space planes (``planes`` only)."""
+    time_smooth_weight: float = 0.0
+    """Second-difference smoothness along time of the time planes (``planes`` only)."""
+    time_l1_weight: float = 0.0
+    """L1 of (time planes - 1) (``planes`` only; 1 means static)."""
+
+    # ---- optimiser
+    lr: float = 2e-2
+    """Adam learning rate (planes like ~2e-2; the paper's dnerf uses 1e-4)."""
+    lr_warmup_iters: int = 100
+    """Linear LR warm-up from ``lr_warmup_start`` x lr over this many iterations (paper: 1k)."""
+    lr_warmup_start: float = 0.1
+    grad_clip: float = 1.0
+    """Max global gradient norm; 0 disables clipping."""
+    max_nonfinite_steps: int = 20
+    """Non-finite losses/gradients skip the step; more than this many skips stops the run."""
+    seed: int = 0
+
+    # ---- budget, logging, checkpoints
+    iters: int | None = None
+    """Iteration budget (the CLI's --iters wins); None with no minutes: 2000."""
+    minutes: float | None = None
+    """Wall-clock budget in minutes of training (the CLI's --minutes wins)."""
+    eval_every: int = 100
+    """Iterations between metrics.jsonl lines (and eval-hook calls)."""
+    checkpoint_every: int = 500
+    """Iterations between checkpoints (one is always written at the end)."""
+    log_every: int = 50
+    """Iterations between progress lines."""
+
+    def __post_init__(self):
+        self.validate()
+
+    def validate(self) -> None:
+        def bad(msg):
+            raise InputError(f"training config: {msg}")
+        from ..field import BACKBONES
+        if self.backbone not in BACKBONES:
+            bad(f"backbone must be one of {sorted(BACKBONES)}, got {self.backbone!r}")
+        if not isinstance(self.field, dict):
+            bad("field must be a mapping of backbone keyword sizes")
+        if self.loss not in LOSSES:
+            bad(f"loss must be one of {list(LOSSES)}, got {self.loss!r}")
+        if int(self.n_samples) < 1 or int(self.rays) < 1:
+            bad("n_samples and rays must be >= 1")
+        if not 0.0 < float(self.crop_fraction) <= 1.0:
+            bad("crop_fraction must be in (0, 1]")
+        if not 0.0 <= float(self.event_ray_fraction) <= 1.0:
+            bad("event_ray_fraction must be in [0, 1]")
+        w = list(self.windows)
+        if not w or any(int(k) < 1 for k in w):
+            bad("windows must be a non-empty list of window counts >= 1")
+        s = [float(f) for f in self.window_switch]
+        if len(s) != len(w) - 1 or any(not 0 < f < 1 for f in s) or s != sorted(s):
+            bad(f"window_switch must hold {len(w) - 1} increasing fractions in (0, 1) "
+                f"(one per change of windows {w}), got {self.window_switch}")
+        if self.box is not None:
+            try:
+                ok = len(self.box) == 2 and all(len(r) == 3 for r in self.box) and \
+                    all(float(b) > float(a) for a, b in zip(*self.box))
+            except TypeError:
+                ok = False
+            if not ok:
+                bad(f"box must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with max > min, got {self.box}")
+        for name in ("lr", "log_eps", "mse_pred_scale", "mse_target_scale", "box_fraction"):
+            if not float(getattr(self, name)) > 0:
+                bad(f"{name} must be > 0")
+        if int(self.occupancy_every) < 1:
+            bad("occupancy_every must be >= 1")
+        for name in ("occupancy_threshold", "no_event_weight", "tv_weight", "time_smooth_weight", "time_l1_weight",
+                     "grad_clip", "time_curriculum", "near"):
+            if float(getattr(self, name)) < 0:
+                bad(f"{name} must be >= 0")
+        if self.iters is not None and int(self.iters) < 1:
+            bad("iters must be >= 1")
+        if self.minutes is not None and not float(self.minutes) > 0:
+            bad("minutes must be > 0")
+        for name in ("eval_every", "checkpoint_every", "log_every", "max_nonfinite_steps",
+                     "crop_warmup_iters", "occupancy_resolution", "occupancy_warmup",
+                     "time_curriculum_min"):
+            if int(getattr(self, name)) < 0:
+                bad(f"{name} must be >= 0")
+
+    # ---- (de)serialisation
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict, *, source: str = "training config") -> "TrainConfig":
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise InputError(f"{source}: must be a mapping of option names to values")
+        names = {f.name for f in dataclasses.fields(cls)}
+        for key in data:
+            if key not in names:
+                raise InputError(f"{source}: unknown key {key!r}; known keys: {', '.join(sorted(names))}")
+        return cls(**data)
+
+    @classmethod
+    def load(cls, path) -> "TrainConfig":
+        import yaml
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"{path}: no such config file")
+        try:
+            data = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as exc:
+            raise InputError(f"{path}: not valid YAML ({exc})") from None
+        return cls.from_dict(data, source=str(path))
+
+    def dump(self) -> str:
+        import yaml
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+    def diff(self, other: "TrainConfig", ignore=RESUME_FREE_KEYS + ("iters", "minutes")) -> list[str]:
+        """Names of the options whose values differ (JSON-normalised)."""
+        a, b = _normal(self.to_dict()), _normal(other.to_dict())
+        return [k for k in a if k not in ignore and a[k] != b.get(k)]
+
+
+def _normal(obj: Any):
+    if isinstance(obj, dict):
+        return {str(k): _normal(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_normal(v) for v in obj]
+    if isinstance(obj, float) and obj.is_integer():
+        return obj
+    return obj
+
+
+def resolve_config(config) -> TrainConfig:
+    """None -> defaults; a TrainConfig -> itself; a dict -> from_dict; else a YAML path."""
+    if config is None:
+        return TrainConfig()
+    if isinstance(config, TrainConfig):
+        return config
+    if isinstance(config, dict):
+        return TrainConfig.from_dict(config)
+    return TrainConfig.load(config)

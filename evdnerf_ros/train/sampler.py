@@ -1,0 +1,187 @@
+"""Ray batches for training: windows, views and pixels.
+
+A batch is drawn from one window [t0, t1) of the current window set (the sequence cut
+into ``n`` equal windows; integer ns edges).  Each ray picks a training view uniformly;
+``event_ray_fraction`` of the rays go through a pixel (uniform among them) that has at
+least one event in that window (``TrainingSet.event_pixels``), the rest through a
+uniform pixel.  A view without events in the window gives a uniform pixel instead.
+The GT log change comes from ``TrainingSet.log_change_stack`` (cached per window set).
+
+All randomness comes from the sampler's own ``numpy.random.Generator`` (its state goes
+into checkpoints).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..field import camera_rays
+from ..sim.camera import PinholeCamera
+
+
+def window_edges(t_start: int, t_end: int, n: int) -> np.ndarray:
+    """n + 1 int64 edges cutting [t_start, t_end) into n equal windows (integer ns)."""
+    t0, t1 = int(t_start), int(t_end)
+    if t1 - t0 < n:
+        raise InputError(f"cannot cut {t1 - t0} ns into {n} windows")
+    k = np.arange(n + 1, dtype=np.int64)
+    return np.int64(t0) + (k * np.int64(t1 - t0)) // np.int64(n)
+
+
+def camera_of(K: np.ndarray, width: int, height: int) -> PinholeCamera:
+    return PinholeCamera(width=int(width), height=int(height), fx=float(K[0, 0]),
+                         fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]))
+
+
+def default_box(train_set, fraction: float = 0.35) -> np.ndarray:
+    """(2, 3) scene box: the set's ``scene_bounds`` if present, else a cube centred on the
+    least-squares common look-at point of the views' optical axes, of half-size
+    ``fraction`` x the mean camera distance to it."""
+    sb = getattr(train_set, "scene_bounds", None)
+    if sb is not None:
+        return np.asarray(sb, np.float64).reshape(2, 3)
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    centres = []
+    for v in train_set.views:
+        T = train_set.pose(v)
+        c, d = T[:3, 3], T[:3, 2] / np.linalg.norm(T[:3, 2])   # OpenCV: +z looks forward
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c
+        centres.append(c)
+    try:
+        target = np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        target = np.mean(centres, axis=0)
+    half = fraction * float(np.mean([np.linalg.norm(c - target) for c in centres]))
+    if not half > 0:
+        half = 1.0
+    return np.stack([target - half, target + half])
+
+
+@dataclass
+class RayBatch:
+    origins: torch.Tensor      # (N, 3)
+    dirs: torch.Tensor         # (N, 3)
+    dl: torch.Tensor           # (N,) GT log change of the window
+    on_event: torch.Tensor     # (N,) bool: the pixel had events in the window
+    t0: float                  # normalised window start
+    t1: float                  # normalised window end
+    window: int                # window index in the current set
+    n_windows: int
+    views: np.ndarray          # (N,) view index into the sampler's view list
+    pixels: np.ndarray         # (N,) flat pixel index
+
+
+class RaySampler:
+    def __init__(self, train_set, *, views=None, event_ray_fraction: float = 0.5,
+                 seed: int = 0):
+        self.ts = train_set
+        self.views = list(train_set.train_views if views is None else views)
+        if not self.views:
+            raise InputError(f"{train_set.path}: no training views")
+        self.frac = float(event_ray_fraction)
+        self.rng = np.random.default_rng(seed)
+        self.width, self.height = int(train_set.width), int(train_set.height)
+        self.P = self.width * self.height
+        o, d = [], []
+        for v in self.views:
+            cam = camera_of(train_set.K(v), self.width, self.height)
+            ov, dv = camera_rays(cam, train_set.pose(v))
+            o.append(ov)
+            d.append(dv)
+        self.origins = torch.stack(o)          # (V, P, 3)
+        self.dirs = torch.stack(d)
+        self._n = None
+        self._edges = None
+        self._dl = None                        # (V, n, P) float32
+        self._pix: dict = {}
+        self._centroids: dict = {}
+
+    # ----- window sets
+    def set_windows(self, n: int) -> None:
+        if n == self._n:
+            return
+        t0, t1 = self.ts.time_range
+        edges = window_edges(t0, t1, int(n))
+        self._dl = np.stack([self.ts.log_change_stack(v, edges).reshape(len(edges) - 1, -1)
+                             for v in self.views])
+        self._edges, self._n, self._pix = edges, int(n), {}
+
+    @property
+    def edges(self) -> np.ndarray:
+        return self._edges
+
+    def event_pixels(self, vi: int, k: int) -> np.ndarray:
+        key = (vi, k)
+        if key not in self._pix:
+            self._pix[key] = self.ts.event_pixels(self.views[vi], int(self._edges[k]),
+                                                  int(self._edges[k + 1]))
+        return self._pix[key]
+
+    # ----- batches
+    def event_centroid(self, vi: int) -> tuple[float, float]:
+        """(x, y) centroid of the view's pixels with events over the whole sequence (the
+        image centre for a view without events)."""
+        if vi not in self._centroids:
+            t0, t1 = self.ts.time_range
+            pix = self.ts.event_pixels(self.views[vi], t0, t1)
+            if pix.size:
+                self._centroids[vi] = (float(np.mean(pix % self.width)),
+                                       float(np.mean(pix // self.width)))
+            else:
+                self._centroids[vi] = ((self.width - 1) / 2, (self.height - 1) / 2)
+        return self._centroids[vi]
+
+    def crop_box(self, vi: int, fraction: float) -> tuple[int, int, int, int]:
+        """(x0, y0, w, h) of the centred crop (``fraction`` of each side) of a view."""
+        w = max(1, int(round(self.width * fraction)))
+        h = max(1, int(round(self.height * fraction)))
+        cx, cy = self.event_centroid(vi)
+        x0 = int(np.clip(round(cx - (w - 1) / 2), 0, self.width - w))
+        y0 = int(np.clip(round(cy - (h - 1) / 2), 0, self.height - h))
+        return x0, y0, w, h
+
+    def sample(self, rays: int, *, usable_windows: int | None = None,
+               crop: float | None = None) -> RayBatch:
+        """A batch of ``rays`` rays from one window among the first ``usable_windows``;
+        ``crop`` (a fraction in (0, 1]) limits the uniform rays to the crop centred on each
+        view's event centroid (the paper's crop warm-up)."""
+        if self._n is None:
+            raise RuntimeError("call set_windows(n) first")
+        rng = self.rng
+        m = self._n if usable_windows is None else max(1, min(self._n, int(usable_windows)))
+        k = int(rng.integers(m))
+        vi = rng.integers(len(self.views), size=rays)
+        if crop is None or crop >= 1.0:
+            pix = rng.integers(self.P, size=rays)
+        else:
+            boxes = np.array([self.crop_box(v, crop) for v in range(len(self.views))])[vi]
+            ux, uy = rng.random(rays), rng.random(rays)
+            x = boxes[:, 0] + np.minimum((ux * boxes[:, 2]).astype(np.int64), boxes[:, 2] - 1)
+            y = boxes[:, 1] + np.minimum((uy * boxes[:, 3]).astype(np.int64), boxes[:, 3] - 1)
+            pix = y * self.width + x
+        n_ev = int(round(self.frac * rays))
+        u = rng.random(n_ev)
+        head = vi[:n_ev]
+        for v in np.unique(head):                  # first n_ev rays: event pixels
+            cand = self.event_pixels(int(v), k)
+            if cand.size:
+                sel = np.flatnonzero(head == v)
+                pix[sel] = cand[np.minimum((u[sel] * cand.size).astype(np.int64), cand.size - 1)]
+        vi_t = torch.as_tensor(vi)
+        pix_t = torch.as_tensor(pix)
+        dl = torch.as_tensor(self._dl[vi, k, pix])
+        on_event = np.zeros(rays, bool)
+        for v in np.unique(vi):                    # mark every ray whose pixel had events
+            sel = vi == v
+            on_event[sel] = np.isin(pix[sel], self.event_pixels(int(v), k))
+        tn = self.ts.normalized_time(self._edges[k:k + 2])
+        return RayBatch(origins=self.origins[vi_t, pix_t], dirs=self.dirs[vi_t, pix_t], dl=dl,
+                        on_event=torch.as_tensor(on_event), t0=float(tn[0]), t1=float(tn[1]),
+                        window=k, n_windows=self._n, views=vi, pixels=pix)

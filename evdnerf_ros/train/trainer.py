@@ -1,0 +1,384 @@
+"""The training loop.
+
+Per iteration: the schedule picks the crop warm-up (uniform rays from a centred crop for
+the first ``crop_warmup_iters``), the window set (varied batching: ``windows[j]`` from
+fraction ``window_switch[j-1]`` of the run on), the usable windows (time curriculum) and
+the learning rate (linear warm-up); the sampler draws a ray batch of one window; both
+window ends are rendered from the same samples (static-view reuse: ``render_rays`` with
+[t0, t1]); dL_hat = log(B1 + eps) - log(B0 + eps) is compared with the GT dL; Adam steps
+after global-norm gradient clipping.  With ``occupancy_resolution`` an occupancy grid
+(max density over time) is refreshed every ``occupancy_every`` iterations after
+``occupancy_warmup`` and skips empty samples.  A non-finite loss or gradient norm skips the step;
+more than ``max_nonfinite_steps`` skips raise ``TrainingDivergedError``.
+
+Run progress (for the schedules) is iteration / iters with an iteration budget, else
+training seconds / (minutes * 60).  ``wall_s`` counts training seconds only (evaluation
+and checkpoint writing excluded) and continues across resumes; ``elapsed_s`` is the same
+including evaluation and checkpoints.
+
+metrics.jsonl: one JSON object per ``eval_every`` iterations and at the end:
+{iter, wall_s, elapsed_s, loss (mean since the previous line), lr, windows, skipped,
+**eval_fn(field, context)}.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import random
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ..errors import EvdnerfError, InputError, OutputExistsError
+from ..field import OccupancyGrid, make_field, render_rays
+from .checkpoint import (CheckpointError, global_rng_states, load_checkpoint, save_checkpoint,
+                         set_global_rng_states)
+from .config import TrainConfig, resolve_config
+from .losses import bin_loss, mse_loss, no_event_hinge
+from .sampler import RaySampler, default_box
+
+DEFAULT_ITERS = 2000
+CHECKPOINT_NAME = "checkpoint.pt"
+METRICS_NAME = "metrics.jsonl"
+CONFIG_NAME = "config.yaml"
+
+
+class TrainingDivergedError(EvdnerfError):
+    """Too many steps with a non-finite loss or gradient."""
+
+
+def plane_regularisers(field, cfg: TrainConfig) -> torch.Tensor | None:
+    """TV on space planes, time smoothness and L1(time planes - 1) (``planes`` only)."""
+    if not hasattr(field, "space_planes") or not (cfg.tv_weight or cfg.time_smooth_weight
+                                                  or cfg.time_l1_weight):
+        return None
+    total = torch.zeros(())
+    if cfg.tv_weight:
+        for p in field.space_planes:
+            total = total + cfg.tv_weight * (((p[..., 1:, :] - p[..., :-1, :]) ** 2).mean()
+                                             + ((p[..., 1:] - p[..., :-1]) ** 2).mean())
+    for p in field.time_planes:
+        if cfg.time_smooth_weight and p.shape[2] >= 3:
+            d2 = p[:, :, 2:] - 2 * p[:, :, 1:-1] + p[:, :, :-2]
+            total = total + cfg.time_smooth_weight * (d2 ** 2).mean()
+        if cfg.time_l1_weight:
+            total = total + cfg.time_l1_weight * (p - 1.0).abs().mean()
+    return total
+
+
+class Trainer:
+    def __init__(self, train_set, config=None, *, run_dir=None, iters: int | None = None,
+                 minutes: float | None = None, eval_fn: Callable | None = None,
+                 log: Callable = print):
+        self.cfg = resolve_config(config)
+        cfg = self.cfg
+        self.ts = train_set
+        self.run_dir = Path(run_dir) if run_dir is not None else None
+        self.log = log
+        self.eval_fn = eval_fn
+        iters = iters if iters is not None else (None if minutes is not None else cfg.iters)
+        minutes = minutes if minutes is not None else (None if iters is not None else cfg.minutes)
+        if iters is None and minutes is None:
+            iters = DEFAULT_ITERS
+        self.iters = None if iters is None else int(iters)
+        self.minutes = None if minutes is None else float(minutes)
+        if self.iters is not None and self.iters < 1:
+            raise InputError("iters must be >= 1")
+        if self.minutes is not None and not self.minutes > 0:
+            raise InputError("minutes must be > 0")
+        random.seed(cfg.seed)
+        np.random.seed(cfg.seed % (1 << 32))
+        torch.manual_seed(cfg.seed)
+        self.box = np.asarray(cfg.box, np.float64) if cfg.box is not None else \
+            default_box(train_set, cfg.box_fraction)
+        self.field = make_field(cfg.backbone, **cfg.field)
+        self.params = [p for p in self.field.parameters() if p.requires_grad]
+        self.opt = torch.optim.Adam(self.params, lr=cfg.lr)
+        self.sampler = RaySampler(train_set, event_ray_fraction=cfg.event_ray_fraction,
+                                  seed=cfg.seed)
+        self.gen = torch.Generator().manual_seed(cfg.seed + 1)
+        self.c_pos, self.c_neg = (float(c) for c in train_set.thresholds)
+        self.occupancy = (OccupancyGrid(cfg.occupancy_resolution) if cfg.occupancy_resolution
+                          else None)
+        self.iteration = 0
+        self.train_s = 0.0
+        self.elapsed_s = 0.0
+        self.skipped = 0
+        self.last_loss = float("nan")
+        self._acc = []
+
+    # ------------------------------------------------------------------ schedules
+    def progress(self) -> float:
+        if self.iters is not None:
+            return self.iteration / self.iters
+        return self.train_s / (self.minutes * 60.0)
+
+    def n_windows(self, progress: float | None = None) -> int:
+        p = self.progress() if progress is None else progress
+        j = sum(1 for f in self.cfg.window_switch if p >= f)
+        return int(self.cfg.windows[j])
+
+    def usable_windows(self, n: int, progress: float | None = None) -> int:
+        cfg = self.cfg
+        p = self.progress() if progress is None else progress
+        if cfg.time_curriculum <= 0 or p >= cfg.time_curriculum:
+            return n
+        return max(min(cfg.time_curriculum_min, n), int(math.ceil(p / cfg.time_curriculum * n)))
+
+    def lr(self) -> float:
+        cfg = self.cfg
+        if cfg.lr_warmup_iters <= 0 or self.iteration >= cfg.lr_warmup_iters:
+            return cfg.lr
+        f = cfg.lr_warmup_start + (1.0 - cfg.lr_warmup_start) * self.iteration / cfg.lr_warmup_iters
+        return cfg.lr * f
+
+    def done(self) -> bool:
+        if self.iters is not None and self.iteration >= self.iters:
+            return True
+        return self.minutes is not None and self.train_s >= self.minutes * 60.0
+
+    # ------------------------------------------------------------------ one step
+    def compute_loss(self, batch):
+        cfg = self.cfg
+        r0, r1 = render_rays(self.field, batch.origins, batch.dirs, [batch.t0, batch.t1],
+                             self.box, cfg.n_samples, near=cfg.near, far=cfg.far,
+                             background=cfg.background, perturb=cfg.perturb, generator=self.gen,
+                             occupancy=self.occupancy)
+        dl_hat = torch.log(r1["grey"] + cfg.log_eps) - torch.log(r0["grey"] + cfg.log_eps)
+        if cfg.loss == "mse":
+            loss = mse_loss(dl_hat, batch.dl, cfg.mse_pred_scale, cfg.mse_target_scale)
+        else:
+            loss = bin_loss(dl_hat, batch.dl, self.c_pos, self.c_neg, paper=cfg.loss == "bin_paper")
+        if cfg.no_event_weight:
+            loss = loss + cfg.no_event_weight * no_event_hinge(dl_hat, batch.dl, self.c_pos,
+                                                                self.c_neg, ~batch.on_event)
+        reg = plane_regularisers(self.field, cfg)
+        if reg is not None:
+            loss = loss + reg
+        return loss
+
+    def step(self) -> float | None:
+        """One iteration; returns the loss, or None when the step was skipped."""
+        cfg = self.cfg
+        n = self.n_windows()
+        self.sampler.set_windows(n)
+        lr = self.lr()
+        for g in self.opt.param_groups:
+            g["lr"] = lr
+        crop = cfg.crop_fraction if self.iteration < cfg.crop_warmup_iters else None
+        batch = self.sampler.sample(cfg.rays, usable_windows=self.usable_windows(n), crop=crop)
+        if (self.occupancy is not None and self.iteration >= cfg.occupancy_warmup
+                and (self.iteration - cfg.occupancy_warmup) % cfg.occupancy_every == 0):
+            self.occupancy.update(self.field, threshold=cfg.occupancy_threshold)
+        self.opt.zero_grad(set_to_none=True)
+        loss = self.compute_loss(batch)
+        value = float(loss.detach())
+        ok = math.isfinite(value)
+        if ok:
+            loss.backward()
+            clip = cfg.grad_clip if cfg.grad_clip > 0 else float("inf")
+            norm = torch.nn.utils.clip_grad_norm_(self.params, clip)
+            ok = bool(torch.isfinite(norm))
+        self.iteration += 1
+        if not ok:
+            self.opt.zero_grad(set_to_none=True)
+            self.skipped += 1
+            if self.skipped > cfg.max_nonfinite_steps:
+                raise TrainingDivergedError(
+                    f"training diverged: {self.skipped} steps had a non-finite loss or gradient "
+                    f"(limit max_nonfinite_steps={cfg.max_nonfinite_steps}, last at iteration "
+                    f"{self.iteration}); lower lr, raise log_eps or check the training set")
+            return None
+        self.opt.step()
+        self.last_loss = value
+        return value
+
+    # ------------------------------------------------------------------ state
+    def rng_state(self) -> dict:
+        return {"global": global_rng_states(), "sampler": self.sampler.rng.bit_generator.state,
+                "perturb": self.gen.get_state()}
+
+    def save(self, path=None) -> Path:
+        path = Path(path) if path is not None else self.run_dir / CHECKPOINT_NAME
+        return save_checkpoint(path, field=self.field, optimizer=self.opt,
+                               iteration=self.iteration, config=self.cfg.to_dict(),
+                               backbone=self.cfg.backbone, rng=self.rng_state(), box=self.box,
+                               extra={"occupied": None if self.occupancy is None
+                                      else self.occupancy.occupied.clone(),
+                                      "train_s": self.train_s, "elapsed_s": self.elapsed_s,
+                                      "skipped": self.skipped, "iters": self.iters,
+                                      "minutes": self.minutes})
+
+    def resume(self, path) -> None:
+        """Continue from a checkpoint of this very run (same config)."""
+        data = load_checkpoint(path)
+        theirs = TrainConfig.from_dict(data["config"], source=f"{path} (config)")
+        diff = self.cfg.diff(theirs)
+        if diff:
+            their = data["config"]
+            what = "; ".join(f"{k}: {their.get(k)!r} there, {getattr(self.cfg, k)!r} here"
+                             for k in diff)
+            raise CheckpointError(
+                f"{path}: the checkpoint's config differs in {', '.join(diff)} ({what}); "
+                "resume with the checkpoint's config, or start a new run")
+        self.field.load_state_dict(data["field"])
+        self.opt.load_state_dict(data["optimizer"])
+        self.box = np.asarray(data["box"], np.float64)
+        self.iteration = int(data["iteration"])
+        ex = data.get("extra", {})
+        self.train_s = float(ex.get("train_s", 0.0))
+        self.elapsed_s = float(ex.get("elapsed_s", self.train_s))
+        self.skipped = int(ex.get("skipped", 0))
+        if self.occupancy is not None and ex.get("occupied") is not None:
+            self.occupancy.occupied = ex["occupied"].clone()
+        rng = data["rng"]
+        set_global_rng_states(rng["global"])
+        self.sampler.rng.bit_generator.state = rng["sampler"]
+        self.gen.set_state(rng["perturb"])
+
+    def init_from(self, path) -> None:
+        """Weights only (the paper's fork -> knife transfer); optimiser and counters fresh."""
+        data = load_checkpoint(path)
+        cfg = data.get("config", {})
+        if data.get("backbone") != self.cfg.backbone or cfg.get("field", {}) != self.cfg.field:
+            raise CheckpointError(
+                f"{path}: --init needs the same backbone and field sizes (checkpoint: "
+                f"{data.get('backbone')} {cfg.get('field')}; here: {self.cfg.backbone} {self.cfg.field})")
+        try:
+            self.field.load_state_dict(data["field"])
+        except RuntimeError as exc:
+            raise CheckpointError(f"{path}: weights do not fit this field ({exc})") from None
+
+    # ------------------------------------------------------------------ loop
+    def _metrics_line(self) -> dict:
+        line = {"iter": self.iteration, "wall_s": round(self.train_s, 6),
+                "elapsed_s": round(self.elapsed_s, 6),
+                "loss": float(np.mean(self._acc)) if self._acc else None,
+                "lr": self.lr(), "windows": self.n_windows(), "skipped": self.skipped}
+        self._acc = []
+        if self.eval_fn is not None:
+            ctx = {"train_set": self.ts, "box": self.box, "n_samples": self.cfg.n_samples,
+                   "near": self.cfg.near, "far": self.cfg.far, "background": self.cfg.background,
+                   "log_eps": self.cfg.log_eps, "iteration": self.iteration,
+                   "windows": self.n_windows(), "occupancy": self.occupancy}
+            was = self.field.training
+            self.field.eval()
+            with torch.no_grad():
+                extra = self.eval_fn(self.field, ctx) or {}
+            self.field.train(was)
+            line.update({k: (float(v) if isinstance(v, (np.floating, np.integer)) else v)
+                         for k, v in extra.items()})
+        return line
+
+    def _write_metrics(self, line: dict) -> None:
+        if self.run_dir is None:
+            return
+        with open(self.run_dir / METRICS_NAME, "a") as f:
+            f.write(json.dumps(_finite(line), allow_nan=False, default=float) + "\n")
+
+    def train(self, until: int | None = None) -> dict:
+        """Run until the budget (or iteration ``until``) is reached; writes metrics and
+        checkpoints into ``run_dir`` when set."""
+        cfg = self.cfg
+        t_wall = time.perf_counter()
+        elapsed0 = self.elapsed_s
+        while not self.done() and (until is None or self.iteration < until):
+            t0 = time.perf_counter()
+            value = self.step()
+            self.train_s += time.perf_counter() - t0
+            self.elapsed_s = elapsed0 + time.perf_counter() - t_wall
+            if value is not None:
+                self._acc.append(value)
+            it = self.iteration
+            if cfg.log_every and it % cfg.log_every == 0:
+                rate = (self.train_s / it) if it else 0.0
+                if self.iters is not None:
+                    eta = rate * (self.iters - it)
+                else:
+                    eta = max(0.0, self.minutes * 60 - self.train_s)
+                self.log(f"iter {it}{'/' + str(self.iters) if self.iters else ''}  "
+                         f"loss {self.last_loss:.5g}  lr {self.lr():.3g}  windows {self.n_windows()}  "
+                         f"skipped {self.skipped}  {1000 * rate:.0f} ms/it  ETA {eta:.0f} s")
+            if cfg.eval_every and it % cfg.eval_every == 0 and not self.done():
+                self._write_metrics(self._metrics_line())
+                self.elapsed_s = elapsed0 + time.perf_counter() - t_wall
+            if (self.run_dir is not None and cfg.checkpoint_every
+                    and it % cfg.checkpoint_every == 0 and not self.done()):
+                self.save()
+        if self.done():
+            self._write_metrics(self._metrics_line())
+        self.elapsed_s = elapsed0 + time.perf_counter() - t_wall
+        ckpt = self.save() if self.run_dir is not None else None
+        return {"iterations": self.iteration, "wall_s": self.train_s, "elapsed_s": self.elapsed_s,
+                "loss": self.last_loss, "skipped": self.skipped,
+                "checkpoint": str(ckpt) if ckpt else None, "box": self.box.tolist()}
+
+
+def _finite(obj):
+    """JSON-safe copy: non-finite floats become None (metrics.jsonl stays strict JSON)."""
+    if isinstance(obj, dict):
+        return {str(k): _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(float(obj)) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+# ---------------------------------------------------------------------- entry point
+def run_train(train_h5, run_dir, *, config=None, minutes: float | None = None,
+              iters: int | None = None, init=None, overwrite: bool = False,
+              log: Callable = print, eval_fn: Callable | None = None) -> dict:
+    """Train on TRAIN.h5 into RUN (``evdnerf train``).
+
+    RUN holds config.yaml, checkpoint.pt and metrics.jsonl.  A RUN with a checkpoint is
+    resumed (its config is used when ``config`` is None; a different one is an error)
+    unless ``overwrite``, which deletes those files first.  ``init``: a checkpoint whose
+    weights start the new run (fork -> knife transfer).  ``iters`` is the run's total
+    iteration count (also on resume); ``minutes`` its total training minutes.
+    """
+    from ..io.trainingset import TrainingSet
+
+    run_dir = Path(run_dir)
+    ckpt = run_dir / CHECKPOINT_NAME
+    ours = [run_dir / n for n in (CHECKPOINT_NAME, METRICS_NAME, CONFIG_NAME)]
+    if run_dir.exists() and not run_dir.is_dir():
+        raise InputError(f"{run_dir}: exists and is not a folder")
+    if overwrite:
+        for p in ours:
+            if p.exists():
+                p.unlink()
+    resume = ckpt.is_file()
+    if resume and init is not None:
+        raise InputError(f"{run_dir}: already holds a checkpoint to resume; --init starts a new run "
+                         "(choose another RUN or pass overwrite)")
+    if not resume and any(p.exists() for p in ours):
+        raise OutputExistsError(run_dir)
+    if resume and config is None:
+        cfg = TrainConfig.from_dict(load_checkpoint(ckpt)["config"], source=f"{ckpt} (config)")
+    else:
+        cfg = resolve_config(config)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with TrainingSet(train_h5) as ts:
+        tr = Trainer(ts, cfg, run_dir=run_dir, iters=iters, minutes=minutes, eval_fn=eval_fn,
+                     log=log)
+        if resume:
+            tr.resume(ckpt)
+            log(f"resuming {run_dir} at iteration {tr.iteration}")
+        elif init is not None:
+            tr.init_from(init)
+            log(f"initialised weights from {init}")
+        (run_dir / CONFIG_NAME).write_text(cfg.dump())
+        summary = tr.train()
+    summary.update({"run_dir": str(run_dir), "resumed": resume,
+                    "metrics": str(run_dir / METRICS_NAME)})
+    return summary
+
+
+__all__ = ["Trainer", "TrainingDivergedError", "run_train", "plane_regularisers"]

@@ -1,0 +1,253 @@
+"""Training: losses, sampler, a tiny run, resume equality, NaN guard, metrics, checkpoints."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from evdnerf_ros.errors import InputError
+from evdnerf_ros.train import (CheckpointError, RaySampler, TrainConfig, Trainer,
+                               TrainingDivergedError, bin_loss, mse_loss, no_event_hinge,
+                               run_train)
+from evdnerf_ros.train.checkpoint import load_checkpoint
+
+SMALL_FIELD = dict(resolutions=[16, 32], time_resolution=8, features=8, hidden=32)
+
+
+def small_config(**kw):
+    base = dict(n_samples=24, rays=256, windows=[8], window_switch=[], field=SMALL_FIELD,
+                lr=2e-2, lr_warmup_iters=10, log_every=0, eval_every=0, time_curriculum=0,
+                checkpoint_every=0)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+@pytest.fixture(scope="module")
+def train_h5(tmp_path_factory):
+    from evdnerf_ros.session.convert import run_convert
+    from evdnerf_ros.sim.session import SimulationOptions, simulate_session
+    tmp = tmp_path_factory.mktemp("train")
+    simulate_session("fork", tmp / "s", SimulationOptions(
+        views=4, val_views=2, resolution=(32, 32), frame_rate_hz=0, gt_times=0, supersample=1,
+        jobs=1, min_step_ns=2_000_000), log=lambda *_: None)
+    run_convert(tmp / "s", tmp / "t.h5", offsets="ground-truth", log=lambda *_: None)
+    return tmp / "t.h5"
+
+
+@pytest.fixture(scope="module")
+def train_set(train_h5):
+    from evdnerf_ros.io.trainingset import TrainingSet
+    ts = TrainingSet(train_h5)
+    yield ts
+    ts.close()
+
+
+# ------------------------------------------------------------------ losses
+def test_bin_loss_hand_computed():
+    c = 0.2
+    dl = torch.tensor([0.4, 0.4, -0.2, 0.0, 0.0, 0.0])
+    dl_hat = torch.tensor([0.5, 0.0, -0.3, 0.1, -0.1, 0.5])
+    # bins: [0.4,0.6] in; [0.4,0.6] out -> (0-0.5)^2; [-0.4,-0.2] in; [-0.2,0.2] in, in;
+    # 0.5 out of [-0.2, 0.2] -> (0.5 - 0)^2
+    expect = (0.25 + 0.25) / 6
+    assert float(bin_loss(dl_hat, dl, c, c)) == pytest.approx(expect, rel=1e-6)
+    # paper variant: [dL, dL + C) for every sign; zero-event pixel only frees [0, C)
+    # 0.5 in; 0 out -> 0.25; -0.3 out of [-0.2, 0) -> (-0.3 + 0.1)^2 = 0.04;
+    # 0.1 in; -0.1 out -> (-0.1 - 0.1)^2 = 0.04; 0.5 out -> 0.16
+    expect_p = (0.25 + 0.04 + 0.04 + 0.16) / 6
+    assert float(bin_loss(dl_hat, dl, c, c, paper=True)) == pytest.approx(expect_p, rel=1e-5)
+    # asymmetric thresholds: positive bin uses C+, negative C-
+    assert float(bin_loss(torch.tensor([0.35]), torch.tensor([0.0]), 0.3, 0.1)) == \
+        pytest.approx((0.35 - 0.1) ** 2, rel=1e-5)
+    assert float(bin_loss(torch.zeros(0), torch.zeros(0), c, c)) == 0.0
+
+
+def test_mse_and_hinge_hand_computed():
+    dl = torch.tensor([0.4, 0.0, 0.0, -0.2])
+    dl_hat = torch.tensor([0.2, 0.5, -0.1, -0.2])
+    assert float(mse_loss(dl_hat, dl)) == pytest.approx((0.04 + 0.25 + 0.01) / 4, rel=1e-5)
+    assert float(mse_loss(dl_hat, dl, 2.0, 0.4)) == pytest.approx(
+        ((0.1 - 1) ** 2 + 0.25 ** 2 + 0.05 ** 2 + (0.1 - 0.5) ** 2) / 4, rel=1e-5)
+    # no-event rays: 0.5 -> relu(0.5 - 0.2) = 0.3, -0.1 -> 0
+    assert float(no_event_hinge(dl_hat, dl, 0.2, 0.2)) == pytest.approx(0.15, rel=1e-5)
+    assert float(no_event_hinge(dl_hat[[0, 3]], dl[[0, 3]], 0.2, 0.2)) == 0.0
+
+
+# ------------------------------------------------------------------ config
+def test_config_yaml(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("lr: 0.05\nwindows: [4, 8]\nwindow_switch: [0.5]\n")
+    cfg = TrainConfig.load(p)
+    assert cfg.lr == 0.05 and cfg.windows == [4, 8] and cfg.rays == TrainConfig().rays
+    p.write_text("lr: 0.05\nlearning_rate: 1\n")
+    with pytest.raises(InputError, match="learning_rate"):
+        TrainConfig.load(p)
+    with pytest.raises(InputError, match="window_switch"):
+        TrainConfig(windows=[4, 8], window_switch=[])
+    assert TrainConfig.from_dict(TrainConfig().to_dict()) == TrainConfig()
+
+
+# ------------------------------------------------------------------ sampler
+def test_sampler_proportions(train_set):
+    s = RaySampler(train_set, event_ray_fraction=0.5, seed=3)
+    s.set_windows(8)
+    on, n, view_counts = 0, 0, np.zeros(len(s.views))
+    dens = np.mean([s.event_pixels(v, k).size / s.P for v in range(len(s.views)) for k in range(8)])
+    for _ in range(20):
+        b = s.sample(200)
+        half = b.on_event[:100].numpy()
+        # every "event" ray whose view has events in the window is on an event pixel
+        has = np.array([s.event_pixels(int(v), b.window).size > 0 for v in b.views[:100]])
+        assert half[has].all()
+        on += int(b.on_event.sum())
+        n += 200
+        view_counts += np.bincount(b.views, minlength=len(s.views))
+        assert b.origins.shape == (200, 3) and b.dl.shape == (200,)
+        assert b.on_event.numpy()[b.dl.numpy() != 0].all()   # a change needs events
+    frac = on / n
+    assert 0.4 <= frac <= 0.5 + 0.5 * dens + 0.08
+    assert view_counts.min() > 0.7 * n / len(s.views)          # views uniform per ray
+
+
+def test_sampler_crop(train_set):
+    s = RaySampler(train_set, event_ray_fraction=0.5, seed=1)
+    s.set_windows(4)
+    b = s.sample(400, crop=0.5)
+    for v, p in zip(b.views[200:], b.pixels[200:]):
+        x0, y0, w, h = s.crop_box(int(v), 0.5)
+        assert w == h == 16
+        assert x0 <= p % s.width < x0 + w and y0 <= p // s.width < y0 + h
+
+
+def test_schedules(train_set):
+    cfg = small_config(windows=[32, 64, 128], window_switch=[0.5, 0.75], time_curriculum=0.1,
+                       lr=1.0, lr_warmup_iters=10, lr_warmup_start=0.1)
+    tr = Trainer(train_set, cfg, iters=1000, log=lambda *_: None)
+    assert [tr.n_windows(p) for p in (0.0, 0.49, 0.5, 0.74, 0.75, 1.0)] == [32, 32, 64, 64, 128, 128]
+    assert tr.usable_windows(32, 0.0) == 3 and tr.usable_windows(32, 0.05) == 16
+    assert tr.usable_windows(64, 0.1) == 64
+    assert tr.lr() == pytest.approx(0.1)
+    tr.iteration = 5
+    assert tr.lr() == pytest.approx(0.55)
+    tr.iteration = 10
+    assert tr.lr() == 1.0
+
+
+# ------------------------------------------------------------------ training
+def test_tiny_run_loss_decreases(train_set):
+    torch.set_num_threads(2)
+    tr = Trainer(train_set, small_config(), iters=150, log=lambda *_: None)
+    losses = []
+    while not tr.done():
+        losses.append(tr.step())
+    first, last = np.mean(losses[:20]), np.mean(losses[-30:])
+    assert last < 0.5 * first, (first, last)
+    assert tr.skipped == 0
+
+
+def test_resume_equals_uninterrupted_and_metrics(train_h5, train_set, tmp_path):
+    cfg = small_config(rays=64, windows=[4, 8], window_switch=[0.5], eval_every=5,
+                       time_curriculum=0.3, lr_warmup_iters=8, crop_warmup_iters=5,
+                       no_event_weight=0.1, tv_weight=1e-3, time_smooth_weight=1e-3,
+                       time_l1_weight=1e-3, occupancy_resolution=8, occupancy_warmup=3,
+                       occupancy_every=4)
+    calls = []
+
+    def eval_fn(field, ctx):
+        calls.append(ctx["iteration"])
+        return {"val_psnr": 10.0 + ctx["iteration"]}
+
+    a = run_train(train_h5, tmp_path / "A", config=cfg, iters=20, log=lambda *_: None,
+                  eval_fn=eval_fn)
+    assert a["iterations"] == 20 and not a["resumed"]
+    tr = Trainer(train_set, cfg, run_dir=tmp_path / "B", iters=20, log=lambda *_: None)
+    (tmp_path / "B").mkdir()
+    tr.train(until=10)
+    assert load_checkpoint(tmp_path / "B" / "checkpoint.pt")["iteration"] == 10
+    b = run_train(train_h5, tmp_path / "B", iters=20, log=lambda *_: None)
+    assert b["resumed"] and b["iterations"] == 20
+    pa = torch.load(tmp_path / "A" / "checkpoint.pt", weights_only=False)["field"]
+    pb = torch.load(tmp_path / "B" / "checkpoint.pt", weights_only=False)["field"]
+    assert pa.keys() == pb.keys()
+    for k in pa:
+        assert torch.equal(pa[k], pb[k]), k
+    # metrics.jsonl: valid JSON, increasing iter and wall_s, eval values present
+    lines = [json.loads(s) for s in (tmp_path / "A" / "metrics.jsonl").read_text().splitlines()]
+    assert [d["iter"] for d in lines] == [5, 10, 15, 20]
+    walls = [d["wall_s"] for d in lines]
+    assert all(b > a for a, b in zip(walls, walls[1:]))
+    assert [d["val_psnr"] for d in lines] == [15.0, 20.0, 25.0, 30.0] and calls == [5, 10, 15, 20]
+    assert lines[-1]["windows"] == 8 and lines[0]["windows"] == 4
+    linesb = [json.loads(s) for s in (tmp_path / "B" / "metrics.jsonl").read_text().splitlines()]
+    wb = [d["wall_s"] for d in linesb]
+    assert [d["iter"] for d in linesb] == [20] or all(y > x for x, y in zip(wb, wb[1:]))
+
+
+def test_checkpoint_errors(train_h5, train_set, tmp_path):
+    cfg = small_config(rays=32)
+    run_train(train_h5, tmp_path / "R", config=cfg, iters=2, log=lambda *_: None)
+    ck = tmp_path / "R" / "checkpoint.pt"
+    # config mismatch names the key
+    with pytest.raises(CheckpointError, match="lr"):
+        run_train(train_h5, tmp_path / "R", config=small_config(rays=32, lr=0.5), iters=4,
+                  log=lambda *_: None)
+    # other software major version
+    data = torch.load(ck, weights_only=False)
+    data["software_version"] = "99.0.0"
+    bad = tmp_path / "bad.pt"
+    torch.save(data, bad)
+    with pytest.raises(CheckpointError, match="major"):
+        load_checkpoint(bad)
+    # init: weights only
+    tr = Trainer(train_set, cfg, iters=5, log=lambda *_: None)
+    tr.init_from(ck)
+    for k, v in torch.load(ck, weights_only=False)["field"].items():
+        assert torch.equal(tr.field.state_dict()[k], v)
+    assert tr.iteration == 0
+    with pytest.raises(CheckpointError, match="backbone and field"):
+        Trainer(train_set, small_config(field=dict(SMALL_FIELD, features=4)), iters=5).init_from(ck)
+
+
+def test_nan_guard(train_set):
+    cfg = small_config(rays=32, max_nonfinite_steps=3)
+    tr = Trainer(train_set, cfg, iters=100, log=lambda *_: None)
+    poison = {"on": False}
+    decode = tr.field.decode
+
+    def bad_decode(feats, t):
+        density, grey = decode(feats, t)
+        if poison["on"]:
+            grey = grey * float("nan")
+        return density, grey
+
+    tr.field.decode = bad_decode
+    for _ in range(3):
+        assert tr.step() is not None
+    before = {k: v.clone() for k, v in tr.field.state_dict().items()}
+    poison["on"] = True
+    assert tr.step() is None and tr.step() is None
+    assert tr.skipped == 2 and tr.iteration == 5
+    for k, v in tr.field.state_dict().items():
+        assert torch.equal(v, before[k])
+    poison["on"] = False
+    assert tr.step() is not None
+    poison["on"] = True
+    assert tr.step() is None           # 3 skips: still tolerated
+    with pytest.raises(TrainingDivergedError, match="max_nonfinite_steps=3"):
+        tr.step()
+
+
+def test_minutes_budget_and_existing_run(train_h5, tmp_path):
+    lines = []
+    r = run_train(train_h5, tmp_path / "M", config=small_config(rays=32, log_every=1),
+                  minutes=0.004, log=lines.append)
+    assert r["iterations"] > 0 and r["wall_s"] >= 0.24 and any("ETA" in s for s in lines)
+    with pytest.raises(InputError, match="--init"):
+        run_train(train_h5, tmp_path / "M", iters=3, init=tmp_path / "M" / "checkpoint.pt",
+                  log=lambda *_: None)
+    r2 = run_train(train_h5, tmp_path / "M", config=small_config(rays=32), iters=2,
+                   overwrite=True, log=lambda *_: None)
+    assert r2["iterations"] == 2 and not r2["resumed"]
