@@ -19,17 +19,9 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..events.slicing import window_edges
 from ..field import camera_rays
 from ..sim.camera import PinholeCamera
-
-
-def window_edges(t_start: int, t_end: int, n: int) -> np.ndarray:
-    """n + 1 int64 edges cutting [t_start, t_end) into n equal windows (integer ns)."""
-    t0, t1 = int(t_start), int(t_end)
-    if t1 - t0 < n:
-        raise InputError(f"cannot cut {t1 - t0} ns into {n} windows")
-    k = np.arange(n + 1, dtype=np.int64)
-    return np.int64(t0) + (k * np.int64(t1 - t0)) // np.int64(n)
 
 
 def camera_of(K: np.ndarray, width: int, height: int) -> PinholeCamera:
