@@ -26,15 +26,8 @@ def small_config(**kw):
 
 
 @pytest.fixture(scope="module")
-def train_h5(tmp_path_factory):
-    from evdnerf_ros.session.convert import run_convert
-    from evdnerf_ros.sim.session import SimulationOptions, simulate_session
-    tmp = tmp_path_factory.mktemp("train")
-    simulate_session("fork", tmp / "s", SimulationOptions(
-        views=4, val_views=2, resolution=(32, 32), frame_rate_hz=0, gt_times=0, supersample=1,
-        jobs=1, min_step_ns=2_000_000), log=lambda *_: None)
-    run_convert(tmp / "s", tmp / "t.h5", offsets="ground-truth", log=lambda *_: None)
-    return tmp / "t.h5"
+def train_h5(tiny_train_h5):
+    return tiny_train_h5
 
 
 @pytest.fixture(scope="module")

@@ -7,18 +7,11 @@ import pytest
 import torch
 
 from evdnerf_ros.cli import main
-from evdnerf_ros.session.convert import run_convert
-from evdnerf_ros.sim.session import SimulationOptions, simulate_session
 
 
-@pytest.fixture(scope="module")
-def tiny_set(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("te")
-    simulate_session("fork", tmp / "s", SimulationOptions(
-        views=4, val_views=2, resolution=(32, 32), frame_rate_hz=0, gt_times=0, supersample=1,
-        jobs=1, min_step_ns=2_000_000), log=lambda *_: None)
-    run_convert(tmp / "s", tmp / "t.h5", offsets="ground-truth", log=lambda *_: None)
-    return tmp / "t.h5"
+@pytest.fixture
+def tiny_set(tiny_train_h5):
+    return tiny_train_h5
 
 
 def test_train_then_eval_pipeline(tiny_set, tmp_path, capsys):

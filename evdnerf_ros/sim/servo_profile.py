@@ -175,25 +175,24 @@ class RunProfile:
         return int(self.boundaries_ns[-1])
 
     # physical angle -------------------------------------------------------------------
-    def angle_deg(self, elapsed_ns):
-        """Smooth physical angle (deg) at int64-ns time(s) since RUN start; scalar or array."""
+    def _segment(self, elapsed_ns):
+        """(targets, segment index, segment duration ns, tau in its segment) per time."""
         e = np.asarray(elapsed_ns, dtype=np.int64)
         b = self.boundaries_ns
-        tg = np.asarray(self.targets_deg)
         k = np.clip(np.searchsorted(b, e, side="right") - 1, 0, len(self.segments) - 1)
         dur = b[k + 1] - b[k]
         tau = (e - b[k]) / dur
+        return np.asarray(self.targets_deg), k, dur, tau
+
+    def angle_deg(self, elapsed_ns):
+        """Smooth physical angle (deg) at int64-ns time(s) since RUN start; scalar or array."""
+        tg, k, dur, tau = self._segment(elapsed_ns)
         out = tg[k] + (tg[k + 1] - tg[k]) * min_jerk(tau)
         return float(out) if out.ndim == 0 else out
 
     def velocity_deg_s(self, elapsed_ns):
         """Analytic angular velocity (deg/s)."""
-        e = np.asarray(elapsed_ns, dtype=np.int64)
-        b = self.boundaries_ns
-        tg = np.asarray(self.targets_deg)
-        k = np.clip(np.searchsorted(b, e, side="right") - 1, 0, len(self.segments) - 1)
-        dur = b[k + 1] - b[k]
-        tau = (e - b[k]) / dur
+        tg, k, dur, tau = self._segment(elapsed_ns)
         out = (tg[k + 1] - tg[k]) * min_jerk_rate(tau) / (dur * 1e-9)
         return float(out) if out.ndim == 0 else out
 

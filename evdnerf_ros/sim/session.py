@@ -262,7 +262,7 @@ def _simulate_view(scene: Scene, camera: PinholeCamera, task: ViewTask,
     if servos:
         drive = servos[0].servo
         t_start_servo = drive.start_ns
-        t_done_servo = drive.start_ns + int(drive.profile.boundaries_ns[-1])
+        t_done_servo = drive.start_ns + drive.profile.duration_ns
         servo_times = [(t_start_servo, "START"), (t_done_servo, "DONE")]
         edges = [(t_start_servo, 1), (t_start_servo + TRIGGER_PULSE_NS, 0)]
         edges = [(t, v) for t, v in edges if start <= t <= end]
