@@ -32,12 +32,15 @@ setup(
         "trimesh>=4",  # OBJ/PLY/GLB mesh loading for scene objects
         "torch==2.13.0",
         "numba==0.68.1",  # EVT 2.0 / 3.0 decode/encode hot loops compiled to C speed
+        "pyserial>=3.5",  # the servo-rig firmware's serial link (rig.servo)
     ],
     extras_require={
         "test": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "mcap>=1.1",
                  "mcap-ros2-support>=0.5", "expelliarmus==1.1.12",
                  "evlib==0.13.2"],  # peer codec and peer simulator in tests/benchmarks
     },
-    entry_points={"console_scripts": ["evdnerf = evdnerf_ros.cli:main"]},
+    entry_points={"console_scripts": ["evdnerf = evdnerf_ros.cli:main"],
+                  # plugin commands of the `evdnerf` CLI (evdnerf_ros never imports rig)
+                  "evdnerf.commands": ["rig = rig.cli:register"]},
     zip_safe=True,
 )

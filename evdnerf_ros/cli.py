@@ -422,6 +422,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate-bin", default="1ms", help="rate histogram bin (default %(default)s)")
     p.add_argument("--topic", help=TOPIC_HELP)
     p.set_defaults(func=_cmd_render_events)
+
+    # Plugins (e.g. rig's `flash` and `servo`): entry points `evdnerf.commands`, each a
+    # function register(subparsers) adding sub-parsers with set_defaults(func=...).
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group="evdnerf.commands"):
+        ep.load()(sub)
     return parser
 
 

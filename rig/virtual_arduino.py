@@ -1,0 +1,229 @@
+"""The virtual Arduino: the real servo-rig firmware running in simavr behind a pseudo-terminal.
+
+``VirtualArduino`` builds ``firmware/build/{rig_servo.hex,virtual_arduino}`` with ``make``
+when they are missing or older than their sources, starts the harness and gives the pty
+path (open it with pyserial, or ``rig.servo.ServoClient``).  The harness logs every edge of
+D8 (trigger), D9 (scene servo) and D10 (turntable) with its simulated time; ``pin_log()``
+reads that log.  Unpaced the chip runs several times faster than real time (device
+microseconds then pass faster than host seconds); ``pace=True`` keeps it at real time (for
+avrdude and host-timing measurements).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import tempfile
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from evdnerf_ros.errors import EvdnerfError
+
+FIRMWARE_DIR = Path(__file__).resolve().parents[1] / "firmware"
+BUILD_DIR = FIRMWARE_DIR / "build"
+FIRMWARE_HEX = BUILD_DIR / "rig_servo.hex"
+HARNESS = BUILD_DIR / "virtual_arduino"
+#: Debian 12 packages the firmware, the harness and flashing need.
+DEBIAN_PACKAGES = ("gcc-avr", "avr-libc", "avrdude", "simavr", "libsimavr-dev")
+#: The Arduino bootloaders shipped by Debian (used to test flashing end to end).
+BOOTLOADER_PACKAGE = "arduino-core-avr"
+ATMEGABOOT_HEX = Path("/usr/share/arduino/hardware/arduino/avr/bootloaders/atmega/"
+                      "ATmegaBOOT_168_atmega328.hex")
+
+PIN_TRIGGER, PIN_SERVO, PIN_TURNTABLE = "D8", "D9", "D10"
+#: pin-log dtype: simulated time in ns since power-up (int64), pin name, level
+PIN_DTYPE = np.dtype([("t_ns", "<i8"), ("pin", "U3"), ("level", "u1")])
+
+
+class FirmwareToolsMissing(EvdnerfError):
+    """avr-gcc, avr-libc or the simavr headers/library are not installed."""
+
+
+class VirtualArduinoError(EvdnerfError):
+    """The harness failed to build or start."""
+
+
+def missing_tools() -> list[str]:
+    """Debian packages (of DEBIAN_PACKAGES) whose files are absent on this machine."""
+    checks = {
+        "gcc-avr": lambda: shutil.which("avr-gcc") is not None,
+        "avr-libc": lambda: Path("/usr/lib/avr/include/avr/io.h").exists(),
+        "avrdude": lambda: shutil.which("avrdude") is not None,
+        "simavr": lambda: any(Path(p).exists() for p in (
+            "/usr/lib/x86_64-linux-gnu/libsimavr.so.1", "/usr/lib/aarch64-linux-gnu/libsimavr.so.1"))
+        or shutil.which("simavr") is not None,
+        "libsimavr-dev": lambda: Path("/usr/include/simavr/sim_avr.h").exists(),
+    }
+    return [pkg for pkg, ok in checks.items() if not ok()]
+
+
+def _install_hint(pkgs) -> str:
+    return f"apt-get install -y {' '.join(pkgs)} (or run `bash quickstart.sh test` as root)"
+
+
+def _stale(target: Path, sources) -> bool:
+    if not target.exists():
+        return True
+    t = target.stat().st_mtime
+    return any(p.stat().st_mtime > t for p in sources)
+
+
+_build_lock = threading.Lock()
+
+
+def build(force: bool = False) -> Path:
+    """Run ``make`` in firmware/ when an output is missing or older than its sources."""
+    sources = [p for p in FIRMWARE_DIR.rglob("*") if p.is_file() and p.suffix in (".c", ".h")
+               and BUILD_DIR not in p.parents and "rig_servo" not in p.parts]
+    sources.append(FIRMWARE_DIR / "Makefile")
+    with _build_lock:
+        if not force and not _stale(FIRMWARE_HEX, sources) and not _stale(HARNESS, sources):
+            return BUILD_DIR
+        need = [p for p in missing_tools() if p != "avrdude"]
+        if need or shutil.which("make") is None:
+            raise FirmwareToolsMissing(
+                "building the firmware needs the Debian packages "
+                f"{', '.join(need or ['make'])}; install them: "
+                + _install_hint(need or ["make"]))
+        # a private build folder renamed into place: parallel builds never see half files
+        tmp = Path(tempfile.mkdtemp(prefix=".build-", dir=FIRMWARE_DIR))
+        try:
+            res = subprocess.run(["make", "-C", str(FIRMWARE_DIR), f"BUILD={tmp}"],
+                                 capture_output=True, text=True)
+            if res.returncode != 0:
+                raise VirtualArduinoError(f"{FIRMWARE_DIR}: make failed:\n{res.stderr[-2000:]}")
+            BUILD_DIR.mkdir(exist_ok=True)
+            for f in tmp.iterdir():
+                os.replace(f, BUILD_DIR / f.name)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return BUILD_DIR
+
+
+def read_pin_log(path) -> np.ndarray:
+    """Parse a harness log into PIN_DTYPE records (RESET lines are skipped)."""
+    rows = []
+    for line in Path(path).read_text().splitlines():
+        parts = line.split()
+        if len(parts) != 3:
+            continue
+        whole, _, frac = parts[0].partition(".")
+        t_ns = int(whole) * 1000 + (int(frac.ljust(4, "0")[:4]) // 10 if frac else 0)
+        rows.append((t_ns, parts[1], int(parts[2])))
+    return np.array(rows, dtype=PIN_DTYPE)
+
+
+@dataclass
+class Pulse:
+    start_ns: int
+    width_ns: int
+
+
+def pulses(log: np.ndarray, pin: str) -> list[Pulse]:
+    """High pulses of one pin (rising edge, width) from a pin log."""
+    sel = log[log["pin"] == pin]
+    out, rise = [], None
+    for t, level in zip(sel["t_ns"].tolist(), sel["level"].tolist()):
+        if level and rise is None:
+            rise = t
+        elif not level and rise is not None:
+            out.append(Pulse(rise, t - rise))
+            rise = None
+    return out
+
+
+class VirtualArduino:
+    """Start the harness; use as a context manager (``with VirtualArduino() as va: va.port``)."""
+
+    def __init__(self, firmware: str | os.PathLike | None = FIRMWARE_HEX, *, pace: bool = False,
+                 bootloader: str | os.PathLike | None = None,
+                 eeprom: str | os.PathLike | None = None,
+                 workdir: str | os.PathLike | None = None, start_timeout: float = 10.0):
+        self.firmware = Path(firmware) if firmware is not None else None
+        self.bootloader = Path(bootloader) if bootloader is not None else None
+        self.pace = pace
+        self.eeprom = Path(eeprom) if eeprom is not None else None
+        self._own_dir = workdir is None
+        self.workdir = Path(workdir) if workdir else Path(tempfile.mkdtemp(prefix="virtual-arduino-"))
+        self.log_path = self.workdir / "pins.log"
+        self.start_timeout = start_timeout
+        self.proc: subprocess.Popen | None = None
+        self.port: str | None = None
+
+    def start(self) -> str:
+        if self.proc is not None:
+            return self.port
+        build()
+        if self.bootloader is not None and not self.bootloader.exists():
+            raise VirtualArduinoError(f"{self.bootloader}: bootloader hex not found (Debian package "
+                                      f"{BOOTLOADER_PACKAGE})")
+        cmd = [str(HARNESS), "--log", str(self.log_path)]
+        if self.pace:
+            cmd.append("--pace")
+        if self.eeprom is not None:
+            cmd += ["--eeprom", str(self.eeprom)]
+        if self.bootloader is not None:
+            cmd += ["--bootloader", str(self.bootloader)]
+        if self.firmware is not None:
+            cmd.append(str(self.firmware))
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     text=True, start_new_session=True)
+        port = self._read_port()
+        self.port = port
+        return port
+
+    def _read_port(self) -> str:
+        result: list[str] = []
+
+        def reader():
+            for line in self.proc.stdout:
+                if line.startswith("PTY "):
+                    result.append(line.split(None, 1)[1].strip())
+                    return
+
+        th = threading.Thread(target=reader, daemon=True)
+        th.start()
+        th.join(self.start_timeout)
+        if not result:
+            self.stop()
+            err = self.proc.stderr.read() if self.proc and self.proc.stderr else ""
+            raise VirtualArduinoError(f"{HARNESS}: did not report its pty within "
+                                      f"{self.start_timeout} s: {err.strip()[-500:]}")
+        return result[0]
+
+    def pin_log(self) -> np.ndarray:
+        """Pin edges logged so far (flushed every simulated millisecond)."""
+        return read_pin_log(self.log_path)
+
+    def stop(self) -> None:
+        """Stop the harness (SIGTERM: it saves --eeprom, flushes the log and exits)."""
+        if self.proc is None:
+            return
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        for stream in (self.proc.stdout, self.proc.stderr):
+            if stream:
+                stream.close()
+        self.proc = None
+
+    def close(self) -> None:
+        self.stop()
+        if self._own_dir:
+            shutil.rmtree(self.workdir, ignore_errors=True)
+
+    def __enter__(self) -> "VirtualArduino":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
