@@ -159,6 +159,7 @@ class VirtualArduino:
         if self.proc is not None:
             return self.port
         build()
+        self.workdir.mkdir(parents=True, exist_ok=True)
         if self.bootloader is not None and not self.bootloader.exists():
             raise VirtualArduinoError(f"{self.bootloader}: bootloader hex not found (Debian package "
                                       f"{BOOTLOADER_PACKAGE})")
@@ -190,8 +191,11 @@ class VirtualArduino:
         th.start()
         th.join(self.start_timeout)
         if not result:
+            proc = self.proc
+            if proc.poll() is None:
+                proc.kill()
+            err = proc.stderr.read() if proc.stderr else ""
             self.stop()
-            err = self.proc.stderr.read() if self.proc and self.proc.stderr else ""
             raise VirtualArduinoError(f"{HARNESS}: did not report its pty within "
                                       f"{self.start_timeout} s: {err.strip()[-500:]}")
         return result[0]
