@@ -1,0 +1,207 @@
+"""rig.servo client logic against a scripted fake device, and `evdnerf servo --virtual`."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rig.servo import (ClockMap, ServoClient, ServoCommandError, ServoPortError,
+                       ServoProtocolError, ServoTimeout)
+
+
+class FakeDevice:
+    """A serial-port stand-in: answers like the firmware; knobs to drop/delay/alter replies."""
+
+    def __init__(self, proto=1, clock=lambda: time.monotonic_ns() // 1000, drop=0,
+                 wrap_base=0):
+        self.proto, self.clock, self.drop = proto, clock, drop
+        self.wrap_base = wrap_base
+        self.out = bytearray()
+        self.cv = threading.Condition()
+        self.commands: list[str] = []
+        self.closed = False
+        self.stale = []
+
+    # serial.Serial surface used by ServoClient
+    @property
+    def in_waiting(self):
+        return len(self.out)
+
+    def read(self, n):
+        with self.cv:
+            if not self.out:
+                self.cv.wait(0.02)
+            data = bytes(self.out[:n])
+            del self.out[:n]
+            return data
+
+    def flush(self):
+        pass
+
+    def close(self):
+        self.closed = True
+
+    def emit(self, line):
+        with self.cv:
+            self.out += (line + "\n").encode()
+            self.cv.notify_all()
+
+    def write(self, data):
+        line = data.decode().strip()
+        self.commands.append(line)
+        tag, cmd = line.split(" ", 1)
+        if self.drop:
+            self.drop -= 1
+            self.stale.append(tag)
+            return len(data)
+        for old in self.stale:          # late replies to dropped commands arrive now
+            self.emit(f"{old} OK PONG 1")
+        self.stale.clear()
+        now = (self.clock() + self.wrap_base) % (1 << 32)
+        if cmd == "PING":
+            self.emit(f"{tag} OK PONG {now}")
+        elif cmd == "HELLO":
+            self.emit(f"{tag} OK HELLO rig_servo proto={self.proto} fw=9.9.9 frame_us=20000")
+        elif cmd.startswith("MOVE"):
+            self.emit(f"{tag} OK MOVE")
+            self.emit(f"START MOVE {now}")
+            self.emit(f"DONE MOVE {(now + 500_000) % (1 << 32)}")
+        else:
+            self.emit(f"{tag} ERR UNKNOWN_COMMAND nope")
+        return len(data)
+
+
+def client_for(dev, **kw):
+    return ServoClient("fake", open_serial=lambda port, baud: dev, **kw)
+
+
+def test_handshake_and_command_matching():
+    dev = FakeDevice()
+    with client_for(dev) as c:
+        assert c.hello == {"proto": "1", "fw": "9.9.9", "frame_us": "20000"}
+        with pytest.raises(ServoCommandError) as exc:
+            c.command("FLY")
+        assert exc.value.code == "UNKNOWN_COMMAND"
+        m = c.move(12.5, 500)
+        assert m.duration_us == 500_000
+    assert dev.closed
+    tags = [cmd.split()[0] for cmd in dev.commands]
+    assert len(set(tags)) == len(tags) and all(t.startswith("@") for t in tags)
+    assert "MOVE 12.5 500" in dev.commands[-1]
+
+
+def test_version_mismatch_is_refused():
+    with pytest.raises(ServoProtocolError, match="protocol 2, this client 1"):
+        client_for(FakeDevice(proto=2)).open()
+
+
+def test_retry_after_a_lost_reply_and_stale_replies_are_ignored():
+    dev = FakeDevice()
+    with client_for(dev, timeout=0.2, retries=2) as c:
+        dev.drop = 1
+        dev_us, _, _ = c.ping()            # first attempt unanswered, retried, answered
+        assert dev_us != 1                 # the late "@n OK PONG 1" of attempt 1 was dropped
+        assert dev.commands[-1].split()[0] != dev.commands[-2].split()[0]
+        dev.drop = 10
+        with pytest.raises(ServoTimeout, match="3 attempts"):
+            c.ping()
+        dev.drop = 0
+
+
+def test_motion_commands_are_never_repeated():
+    dev = FakeDevice()
+    with client_for(dev, timeout=0.2, retries=3) as c:
+        dev.drop = 1
+        with pytest.raises(ServoTimeout, match="1 attempts"):
+            c.move(10, 100)
+        assert sum(cmd.split(" ", 1)[1].startswith("MOVE") for cmd in dev.commands) == 1
+
+
+def test_clock_offset_and_drift_from_pings():
+    # a device clock running 150 ppm fast with an offset, unwrapped across 2^32 us
+    t0 = time.monotonic_ns()
+    dev = FakeDevice(clock=lambda: int(((time.monotonic_ns() - t0) / 1000) * 1.000150),
+                     wrap_base=(1 << 32) - 300_000)
+    with client_for(dev) as c:
+        for _ in range(40):
+            c.ping()
+            time.sleep(0.01)
+        cm = c.sync_clock(pings=0)
+        assert isinstance(cm, ClockMap) and cm.samples >= 20
+        # host ns per device us: 1000 / 1.00015
+        assert abs(cm.drift_ppm - (1000 / 1.00015 / 1000 - 1) * 1e6) < 60
+        # the device wrapped past 2^32 during the pings and was unwrapped
+        dev_now, s, r = c.ping()
+        assert dev_now > (1 << 32) - 300_000 + 300_000
+        assert abs(c.device_to_host_ns(dev_now) - (s + r) / 2) < 2_000_000
+
+
+def test_port_missing_is_a_typed_error(tmp_path):
+    with pytest.raises(ServoPortError, match="cannot open the servo port"):
+        ServoClient(str(tmp_path / "ttyACM9")).open()
+
+
+def test_no_answer_names_the_fix():
+    dev = FakeDevice(drop=10**6)
+    with pytest.raises(ServoTimeout, match="evdnerf flash"):
+        client_for(dev, boot_timeout=0.3, timeout=0.1).open()
+
+
+# --------------------------------------------------------------------------- CLI (virtual)
+
+@pytest.fixture(scope="module")
+def built():
+    from rig import virtual_arduino as va_mod
+
+    missing = [p for p in va_mod.missing_tools() if p != "avrdude"]
+    if missing:
+        pytest.skip("firmware tools missing: install the Debian packages " + " ".join(missing))
+    return va_mod.build()
+
+
+def test_cli_servo_virtual(built, tmp_path, capsys):
+    from evdnerf_ros.cli import main
+
+    ee = str(tmp_path / "ee.bin")
+    assert main(["servo", "--virtual", "--eeprom", ee, "hello"]) == 0
+    assert '"proto": "1"' in capsys.readouterr().out
+    assert main(["servo", "--virtual", "--eeprom", ee, "ping", "-n", "5"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("round trip") == 5 and "drift" in out
+    assert main(["servo", "--virtual", "--eeprom", ee, "set-profile", "90", "120", "200",
+                 "90", "200"]) == 0
+    capsys.readouterr()
+    assert main(["servo", "--virtual", "--eeprom", ee, "get-profile"]) == 0
+    assert '"segments": [[120.0, 200], [90.0, 200]]' in capsys.readouterr().out
+    assert main(["servo", "--virtual", "--eeprom", ee, "run"]) == 0
+    assert "(400.0 ms)" in capsys.readouterr().out
+    assert main(["servo", "--virtual", "--eeprom", ee, "set-limits", "10", "170", "500",
+                 "1000", "2000"]) == 0
+    capsys.readouterr()
+    assert main(["servo", "--virtual", "--eeprom", ee, "move", "175", "500"]) == 2
+    err = capsys.readouterr().err
+    assert "OUT_OF_RANGE" in err and err.count("\n") == 1
+    assert main(["servo", "--virtual", "move", "120", "300"]) == 0
+    assert "DONE" in capsys.readouterr().out
+
+
+def test_library_never_imports_rig():
+    root = Path(__file__).resolve().parents[1] / "evdnerf_ros"
+    for f in root.rglob("*.py"):
+        text = f.read_text()
+        assert "import rig" not in text and "from rig" not in text, f
+
+
+def test_cli_finds_plugin_commands():
+    from evdnerf_ros.cli import build_parser
+
+    p = build_parser()
+    args = p.parse_args(["flash", "--port", "/dev/ttyACM0", "--board", "nano"])
+    assert args.board == "nano" and callable(args.func)
+    args = p.parse_args(["servo", "--virtual", "move", "90", "500"])
+    assert (args.angle, args.ms) == (90.0, 500)
+    assert np.isfinite(args.angle)
