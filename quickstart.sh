@@ -34,6 +34,26 @@ if [ ! -x .venv/bin/python ]; then
   fi
 fi
 
+# The servo-rig firmware (firmware/): avr-gcc + avr-libc build it, simavr + libsimavr-dev run it
+# in the virtual Arduino, avrdude flashes it, arduino-core-avr holds the bootloader the
+# flashing test runs.  Checked with dpkg so an installed machine never runs apt.
+FIRMWARE_PACKAGES="gcc-avr avr-libc avrdude simavr libsimavr-dev arduino-core-avr make"
+missing_fw=""
+if command -v dpkg >/dev/null; then
+  for pkg in $FIRMWARE_PACKAGES; do
+    dpkg -s "$pkg" >/dev/null 2>&1 || missing_fw="$missing_fw $pkg"
+  done
+fi
+if [ -n "$missing_fw" ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "quickstart: installing Debian packages for the firmware:$missing_fw"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $missing_fw >/dev/null \
+      || echo "quickstart: could not install$missing_fw; the firmware tests will be skipped" >&2
+  else
+    echo "quickstart: the servo firmware's tests are skipped until these Debian packages are installed:$missing_fw (run this script as root to install them)" >&2
+  fi
+fi
+
 # Reinstall only when the package definition changed since the last set-up.
 stamp=.venv/.quickstart-stamp
 want=$(cat setup.py setup.cfg package.xml | sha256sum | cut -d' ' -f1)
