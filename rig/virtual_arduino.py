@@ -91,13 +91,13 @@ def build(force: bool = False) -> Path:
                 f"{', '.join(need or ['make'])}; install them: "
                 + _install_hint(need or ["make"]))
         # a private build folder renamed into place: parallel builds never see half files
-        tmp = Path(tempfile.mkdtemp(prefix=".build-", dir=FIRMWARE_DIR))
+        BUILD_DIR.mkdir(exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=BUILD_DIR))
         try:
             res = subprocess.run(["make", "-C", str(FIRMWARE_DIR), f"BUILD={tmp}"],
                                  capture_output=True, text=True)
             if res.returncode != 0:
                 raise VirtualArduinoError(f"{FIRMWARE_DIR}: make failed:\n{res.stderr[-2000:]}")
-            BUILD_DIR.mkdir(exist_ok=True)
             for f in tmp.iterdir():
                 os.replace(f, BUILD_DIR / f.name)
         finally:
