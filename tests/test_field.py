@@ -33,6 +33,9 @@ class ConstantField(DynamicField):
         n = x.shape[0]
         return torch.full((n,), self.sigma), torch.full((n,), self.grey)
 
+    def decode_static(self, x):
+        return self.forward(x, torch.zeros(x.shape[0], 1))
+
 
 class BallField(DynamicField):
     """Density 5 inside a ball of radius 0.3 (normalised coords) at c, zero elsewhere."""
@@ -45,6 +48,9 @@ class BallField(DynamicField):
         r = (x - self.c).norm(dim=1)
         inside = r < 0.3
         return torch.where(inside, 5.0, 0.0), 0.3 + 0.5 * x[:, 0].abs()
+
+    def decode_static(self, x):
+        return self.forward(x, torch.zeros(x.shape[0], 1))
 
 
 @pytest.mark.parametrize("field", [small_planes(), small_dnerf()], ids=["planes", "dnerf"])

@@ -18,7 +18,7 @@ from .metrics import event_metrics, protocol_windows
 
 def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: int,
                    log_eps: float, near: float = 0.0, far: float = float("inf"),
-                   background: float = 0.0, occupancy=None, windows=None):
+                   background: float = 0.0, occupancy=None, dynamic=None, windows=None):
     """(pred (K, H, W), gt (K, H, W), metrics) over `views` x the chosen windows."""
     t0, t1 = train_set.time_range
     edges = window_edges(t0, t1, n_windows)
@@ -31,7 +31,8 @@ def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: i
         for k in ks:
             tn = train_set.normalized_time(edges[k:k + 2])
             b0, b1 = render_image(field, cam, T, [float(tn[0]), float(tn[1])], box, n_samples,
-                                  near=near, far=far, background=background, occupancy=occupancy)
+                                  near=near, far=far, background=background, occupancy=occupancy,
+                                  dynamic=dynamic, changes_only=dynamic is not None)
             b0, b1 = (np.asarray(b.detach().cpu().numpy() if hasattr(b, "detach") else b, np.float64)
                       for b in (b0, b1))
             preds.append(np.log(b1 + log_eps) - np.log(b0 + log_eps))
@@ -51,7 +52,7 @@ def validation_eval(*, n_windows: int | None = None, max_views: int | None = Non
         _, _, m = evaluate_views(field, ts, views, n_windows or ctx["windows"], box=ctx["box"],
                                  n_samples=ctx["n_samples"], log_eps=ctx["log_eps"],
                                  near=ctx["near"], far=ctx["far"], background=ctx["background"],
-                                 occupancy=ctx["occupancy"])
+                                 occupancy=ctx["occupancy"], dynamic=ctx.get("dynamic"))
         return {"val_psnr": m["continuous"]["psnr"], "val_psnr_zero_floor": m["zero_floor"]["psnr"],
                 "val_psnr_quantized": m["quantized"]["psnr"], "val_ssim": m["continuous"]["ssim"],
                 "val_mae": m["continuous"]["mae"], "val_views": len(views)}
@@ -60,7 +61,7 @@ def validation_eval(*, n_windows: int | None = None, max_views: int | None = Non
 
 
 def load_field(run_dir):
-    """(field in eval mode, TrainConfig, box) from RUN/checkpoint.pt."""
+    """(field in eval mode, TrainConfig, box, iteration, DynamicRegion or None) from RUN/checkpoint.pt."""
     from pathlib import Path
 
     from ..field import make_field
@@ -74,7 +75,10 @@ def load_field(run_dir):
     field = make_field(cfg.backbone, **cfg.field)
     field.load_state_dict(data["field"])
     field.eval()
-    return field, cfg, np.asarray(data["box"], np.float64), int(data["iteration"])
+    from ..field import DynamicRegion
+    mask = data.get("extra", {}).get("dynamic")
+    dynamic = DynamicRegion(mask) if mask is not None else None
+    return field, cfg, np.asarray(data["box"], np.float64), int(data["iteration"]), dynamic
 
 
 def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int | None = None,
@@ -86,7 +90,7 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
     from ..io.trainingset import TrainingSet
     from .figures import side_by_side
 
-    field, cfg, box, iteration = load_field(run_dir)
+    field, cfg, box, iteration, dynamic = load_field(run_dir)
     n = int(n_windows or cfg.windows[-1])
     result = {"run": str(run_dir), "train_set": str(train_h5), "iteration": iteration,
               "trained_windows": n, "lpips": None,
@@ -99,7 +103,8 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
             for factor in (1, 4, 8):
                 pred, gt, m = evaluate_views(field, ts, views, n * factor, box=box,
                                              n_samples=cfg.n_samples, log_eps=cfg.log_eps,
-                                             near=cfg.near, far=cfg.far, background=cfg.background)
+                                             near=cfg.near, far=cfg.far, background=cfg.background,
+                                             dynamic=dynamic)
                 key = f"{split}_windows_x{factor}"
                 result[key] = {name: {k: v for k, v in m[name].items() if k != "psnr_per_window"}
                                for name in ("continuous", "quantized", "zero_floor")}

@@ -6,10 +6,12 @@
 - ``DNeRFField`` (``dnerf``): the paper's deformation + canonical MLPs.
 - ``render``: rays, ray-box intersection, sampling, volume rendering.
 - ``OccupancyGrid``: empty-space skipping (from the field or an event footprint).
+- ``DynamicRegion``: where the scene may change (visual hull of the event footprints).
 """
 
 from .base import DynamicField, normalized_time
 from .dnerf import DNeRFField, positional_encoding
+from .dynamic_region import DynamicRegion, event_footprint
 from .occupancy import OccupancyGrid
 from .planes import PlanesField
 from .render import (camera_rays, normalize_points, ray_box_intersect, render_image,
@@ -28,7 +30,8 @@ def make_field(name: str = "planes", **kwargs) -> DynamicField:
     return cls(**kwargs)
 
 
-__all__ = ["DynamicField", "PlanesField", "DNeRFField", "OccupancyGrid", "BACKBONES",
+__all__ = ["DynamicField", "PlanesField", "DNeRFField", "OccupancyGrid", "DynamicRegion",
+           "event_footprint", "BACKBONES",
            "make_field", "normalized_time", "camera_rays", "normalize_points", "ray_box_intersect",
            "render_image", "render_rays", "sample_along_rays", "volume_weights",
            "positional_encoding"]

@@ -23,6 +23,11 @@ fallback (this base class) has ``space_features`` return ``x`` itself and ``deco
 ``forward``, i.e. it evaluates the full field twice; backbones with a factorised
 representation (``planes``) override both so that only the time-dependent lookups are
 repeated.  ``evaluate_times(x, times)`` is the convenience wrapper.
+
+Static points: ``decode_static(space_features(x))`` is the field with no time dependence
+(planes: the time factors taken as 1; dnerf: no deformation).  ``evaluate_times(x, times,
+dynamic)`` uses it, evaluated once for all times, where the boolean ``dynamic`` is False
+(points outside ``DynamicRegion``).
 """
 
 from __future__ import annotations
@@ -52,10 +57,37 @@ class DynamicField(nn.Module, abc.ABC):
         """(density, grey) at time ``t`` from ``space_features(x)``."""
         return self.forward(features, t)
 
-    def evaluate_times(self, x: torch.Tensor, times: Sequence[torch.Tensor]):
-        """[(density, grey) for each t in ``times``], sharing the space features."""
-        feats = self.space_features(x)
-        return [self.decode(feats, t) for t in times]
+    @abc.abstractmethod
+    def decode_static(self, features: Any):
+        """(density, grey) of the static field (no time dependence) from ``space_features(x)``."""
+
+    def evaluate_times(self, x: torch.Tensor, times: Sequence[torch.Tensor],
+                       dynamic: torch.Tensor | None = None):
+        """[(density, grey) for each t in ``times``], sharing the space features.
+
+        ``dynamic``: optional (N,) bool; False points take the static field, evaluated once.
+        """
+        if dynamic is None:
+            feats = self.space_features(x)
+            return [self.decode(feats, t) for t in times]
+        d_idx = torch.nonzero(dynamic, as_tuple=False).squeeze(1)
+        s_idx = torch.nonzero(~dynamic, as_tuple=False).squeeze(1)
+        n = x.shape[0]
+        empty = torch.zeros(n, dtype=torch.float32, device=x.device)
+        static = self.decode_static(self.space_features(x[s_idx])) if s_idx.numel() else None
+        feats = self.space_features(x[d_idx]) if d_idx.numel() else None
+        out = []
+        for t in times:
+            density, grey = empty, empty
+            if static is not None:
+                density = density.index_put((s_idx,), static[0])
+                grey = grey.index_put((s_idx,), static[1])
+            if feats is not None:
+                dd, gd = self.decode(feats, t[d_idx] if t.shape[0] == n else t)
+                density = density.index_put((d_idx,), dd)
+                grey = grey.index_put((d_idx,), gd)
+            out.append((density, grey))
+        return out
 
 
 def normalized_time(t_ns, t_start_ns: int, t_end_ns: int) -> torch.Tensor:

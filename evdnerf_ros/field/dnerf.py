@@ -87,7 +87,13 @@ class DNeRFField(DynamicField):
     def forward(self, x: torch.Tensor, t: torch.Tensor):
         x = x.to(torch.float32)
         t = t.to(torch.float32).reshape(-1, 1).expand(x.shape[0], 1)
-        xc = x + self.deformation(x, t)
+        return self.canonical_field(x + self.deformation(x, t))
+
+    def decode_static(self, features):
+        """No deformation: the canonical field at the point itself."""
+        return self.canonical_field(features.to(torch.float32))
+
+    def canonical_field(self, xc: torch.Tensor):
         h = self.canonical(positional_encoding(xc, self.pe_x))
         raw = self.density_out(h)[:, 0]
         if self.density_activation == "softplus":

@@ -10,7 +10,8 @@ concatenated across scales.  A tiny MLP decodes density (softplus or truncated e
 grey (sigmoid).  No view dependence.
 
 Static-view reuse: ``space_features`` returns the product of the three space planes per
-scale; ``decode`` multiplies in the three time planes and runs the MLP.
+scale; ``decode`` multiplies in the three time planes and runs the MLP; ``decode_static``
+runs the MLP on the space product alone (time factors 1).
 """
 
 from __future__ import annotations
@@ -111,7 +112,14 @@ class PlanesField(DynamicField):
         for planes, sf in zip(self.time_planes, feats):
             f = self._lookup(planes, coords)
             out.append(sf * (f[0] * f[1] * f[2]))
-        raw = self.decoder(torch.cat(out, dim=1))
+        return self._head(torch.cat(out, dim=1))
+
+    def decode_static(self, features):
+        """Time factors taken as 1 (the planes' initial value: a point that never changes)."""
+        return self._head(torch.cat(features[1], dim=1))
+
+    def _head(self, feat: torch.Tensor):
+        raw = self.decoder(feat)
         if self.density_activation == "softplus":
             density = F.softplus(raw[:, 0] + self.density_bias)
         else:

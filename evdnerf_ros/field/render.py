@@ -16,6 +16,11 @@ Rendered grey = sum_i w_i c_i + (1 - sum_i w_i) * background, linear intensity.
 
 Static-view reuse: ``render_rays`` accepts a list of times; all of them share the same
 samples and the field's space features (``DynamicField.evaluate_times``).
+
+Static regions: with a ``DynamicRegion``, samples outside it take the static field,
+evaluated once for all times.  With ``changes_only`` (the caller uses only differences
+between the times), rays with no dynamic sample are not evaluated at all: they render the
+background at every time, so their change is exactly zero, as the full render's would be.
 """
 
 from __future__ import annotations
@@ -99,13 +104,15 @@ def volume_weights(sigma_delta: torch.Tensor) -> torch.Tensor:
 def render_rays(field: DynamicField, origins: torch.Tensor, dirs: torch.Tensor, t_norm,
                 box, n_samples: int = 64, *, near: float = 0.0, far: float = float("inf"),
                 background: float = 0.0, perturb: bool = False,
-                generator: torch.Generator | None = None, occupancy=None):
+                generator: torch.Generator | None = None, occupancy=None, dynamic=None,
+                changes_only: bool = False):
     """Render rays at one time or at several times sharing their samples.
 
     ``t_norm``: a float, an (N,) / (N, 1) tensor, or a list/tuple of those (static-view
     reuse: one result per time, samples and space features shared).
     ``occupancy``: an ``OccupancyGrid`` (or None); samples in empty cells are not
-    evaluated (density 0).
+    evaluated (density 0).  ``dynamic``: a ``DynamicRegion`` (or None); ``changes_only``:
+    see the module docstring (needs ``dynamic``).
 
     Returns a dict (or a list of dicts for a list of times) with ``grey`` (N,),
     ``opacity`` (N,), ``depth`` (N,, expected distance; background rays -> 0),
@@ -121,11 +128,20 @@ def render_rays(field: DynamicField, origins: torch.Tensor, dirs: torch.Tensor, 
     valid = hit[:, None].expand(n, n_samples).reshape(-1)
     if occupancy is not None:
         valid = valid & occupancy.query(x)
+    is_dynamic = None
+    if dynamic is not None:
+        is_dynamic = dynamic.query(x) & valid
+        if changes_only:
+            ray_dynamic = is_dynamic.reshape(n, n_samples).any(dim=1)
+            valid = valid & ray_dynamic[:, None].expand(n, n_samples).reshape(-1)
+    elif changes_only:
+        raise ValueError("changes_only needs a dynamic region")
     idx = torch.nonzero(valid, as_tuple=False).squeeze(1)
     ray_of_sample = torch.div(idx, n_samples, rounding_mode="floor")
     t_cols = [as_time_column(t, n, origins.device)[ray_of_sample] for t in times]
     if idx.numel():
-        evals = field.evaluate_times(x[idx], t_cols)
+        evals = field.evaluate_times(x[idx], t_cols,
+                                     None if is_dynamic is None else is_dynamic[idx])
     else:
         evals = [(None, None)] * len(times)
     out = []
@@ -147,7 +163,8 @@ def render_rays(field: DynamicField, origins: torch.Tensor, dirs: torch.Tensor, 
 def render_image(field: DynamicField, camera, T_world_cam, t_norm, box,
                  n_samples: int = 64, *, chunk: int = 8192, near: float = 0.0,
                  far: float = float("inf"), background: float = 0.0, occupancy=None,
-                 with_grad: bool = False, key: str = "grey"):
+                 dynamic=None, changes_only: bool = False, with_grad: bool = False,
+                 key: str = "grey"):
     """Render a full image (H, W) float32 of ``key`` ("grey", "opacity" or "depth").
 
     ``t_norm`` as in ``render_rays`` (a list gives a list of images from shared samples).
@@ -162,7 +179,7 @@ def render_image(field: DynamicField, camera, T_world_cam, t_norm, box,
         for s in range(0, o.shape[0], chunk):
             res = render_rays(field, o[s:s + chunk], d[s:s + chunk], times, box, n_samples,
                               near=near, far=far, background=background,
-                              occupancy=occupancy)
+                              occupancy=occupancy, dynamic=dynamic, changes_only=changes_only)
             for k, r in enumerate(res):
                 parts[k].append(r[key])
     imgs = [torch.cat(p).reshape(camera.height, camera.width) for p in parts]

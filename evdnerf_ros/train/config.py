@@ -54,6 +54,18 @@ class TrainConfig:
     occupancy_warmup: int = 200
     occupancy_threshold: float = 0.01
     """Density (per metre) below which a cell counts as empty (the grid is dilated by one cell)."""
+    dynamic_region: bool = True
+    """Carve the region where the scene may change from the static training views' event
+    footprints (``field.DynamicRegion``); outside it the field is static and rays that
+    cross no dynamic voxel are skipped (their change is exactly zero)."""
+    dynamic_resolution: int = 64
+    """Voxels per side of the dynamic region."""
+    dynamic_min_events: int = 1
+    """Events a pixel needs over the whole sequence to count in a view's footprint."""
+    dynamic_dilate_px: int = 1
+    """Footprint dilation in pixels (covers sub-pixel projection error)."""
+    dynamic_misses: int = 0
+    """Views that may see a voxel off their footprint and still keep it dynamic (occlusion)."""
     log_eps: float = LOG_EPS
     """eps of L = log(I + eps), the toolkit's one log rule (sim.logmap.LOG_EPS)."""
 
@@ -82,12 +94,18 @@ class TrainConfig:
     time_curriculum_min: int = 3
 
     # ---- loss
-    loss: str = "bin"
+    supervision: str = "events"
+    """``events`` (EvDNeRF) or ``frames``: fit the blurred grey frames instead, each rendered
+    at its mid-exposure time with an MSE on linear intensity (the paper's DNeRF-on-blurred-
+    frames baseline; windows, event rays and event losses are then unused)."""
+    loss: str = "mse"
     """``bin``: dead zone on the quantisation bin of the GT change, polarity-aware
     (positive: [dL, dL+C+), negative: (dL-C-, dL], none: (-C-, C+)), squared distance to
     the bin centre outside it; ``bin_paper``: the paper code's [dL, dL+C) for every sign;
     ``mse``: mean((dL_hat/mse_pred_scale - dL/mse_target_scale)^2) (paper code: 2.2 and
-    max|E_train|)."""
+    max|E_train|).  ``mse`` is the default: the protocol scores the continuous dL_hat, and
+    the squared error is minimised by the mean change, which the bin losses do not seek
+    (tiny fork set, 600 iterations: validation 27.2 dB with mse vs 25.0 with bin)."""
     mse_pred_scale: float = 1.0
     mse_target_scale: float = 1.0
     no_event_weight: float = 0.0
@@ -134,6 +152,8 @@ class TrainConfig:
             bad(f"backbone must be one of {sorted(BACKBONES)}, got {self.backbone!r}")
         if not isinstance(self.field, dict):
             bad("field must be a mapping of backbone keyword sizes")
+        if self.supervision not in ("events", "frames"):
+            bad(f"supervision must be events or frames, got {self.supervision!r}")
         if self.loss not in LOSSES:
             bad(f"loss must be one of {list(LOSSES)}, got {self.loss!r}")
         if int(self.n_samples) < 1 or int(self.rays) < 1:
@@ -160,6 +180,8 @@ class TrainConfig:
         for name in ("lr", "log_eps", "mse_pred_scale", "mse_target_scale", "box_fraction"):
             if not float(getattr(self, name)) > 0:
                 bad(f"{name} must be > 0")
+        if int(self.dynamic_resolution) < 1:
+            bad("dynamic_resolution must be >= 1")
         if int(self.occupancy_every) < 1:
             bad("occupancy_every must be >= 1")
         for name in ("occupancy_threshold", "no_event_weight", "tv_weight", "time_smooth_weight", "time_l1_weight",
@@ -172,7 +194,8 @@ class TrainConfig:
             bad("minutes must be > 0")
         for name in ("eval_every", "checkpoint_every", "log_every", "max_nonfinite_steps",
                      "crop_warmup_iters", "occupancy_resolution", "occupancy_warmup",
-                     "time_curriculum_min"):
+                     "time_curriculum_min", "dynamic_min_events", "dynamic_dilate_px",
+                     "dynamic_misses"):
             if int(getattr(self, name)) < 0:
                 bad(f"{name} must be >= 0")
 

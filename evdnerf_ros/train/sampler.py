@@ -72,7 +72,7 @@ class RayBatch:
 
 class RaySampler:
     def __init__(self, train_set, *, views=None, event_ray_fraction: float = 0.5,
-                 seed: int = 0):
+                 seed: int = 0, dynamic=None, box=None):
         self.ts = train_set
         self.views = list(train_set.train_views if views is None else views)
         if not self.views:
@@ -89,6 +89,13 @@ class RaySampler:
             d.append(dv)
         self.origins = torch.stack(o)          # (V, P, 3)
         self.dirs = torch.stack(d)
+        # With a dynamic region, uniform rays come only from the pixels whose rays cross
+        # it: every other pixel of a static view predicts exactly no change.
+        self.active = None
+        if dynamic is not None:
+            self.active = [torch.nonzero(dynamic.rays_crossing(self.origins[i], self.dirs[i], box),
+                                         as_tuple=False).squeeze(1).numpy()
+                           for i in range(len(self.views))]
         self._n = None
         self._edges = None
         self._dl = None                        # (V, n, P) float32
@@ -143,14 +150,23 @@ class RaySampler:
                crop: float | None = None) -> RayBatch:
         """A batch of ``rays`` rays from one window among the first ``usable_windows``;
         ``crop`` (a fraction in (0, 1]) limits the uniform rays to the crop centred on each
-        view's event centroid (the paper's crop warm-up)."""
+        view's event centroid (the paper's crop warm-up); with a dynamic region the uniform
+        rays come from the pixels that see it instead, a tighter focus, and ``crop`` is moot."""
         if self._n is None:
             raise RuntimeError("call set_windows(n) first")
         rng = self.rng
         m = self._n if usable_windows is None else max(1, min(self._n, int(usable_windows)))
         k = int(rng.integers(m))
         vi = rng.integers(len(self.views), size=rays)
-        if crop is None or crop >= 1.0:
+        if self.active is not None:
+            pix = rng.integers(self.P, size=rays)
+            u = rng.random(rays)
+            for v in np.unique(vi):
+                cand = self.active[int(v)]
+                if cand.size:
+                    sel = np.flatnonzero(vi == v)
+                    pix[sel] = cand[np.minimum((u[sel] * cand.size).astype(np.int64), cand.size - 1)]
+        elif crop is None or crop >= 1.0:
             pix = rng.integers(self.P, size=rays)
         else:
             boxes = np.array([self.crop_box(v, crop) for v in range(len(self.views))])[vi]
@@ -177,3 +193,56 @@ class RaySampler:
         return RayBatch(origins=self.origins[vi_t, pix_t], dirs=self.dirs[vi_t, pix_t], dl=dl,
                         on_event=torch.as_tensor(on_event), t0=float(tn[0]), t1=float(tn[1]),
                         window=k, n_windows=self._n, views=vi, pixels=pix)
+
+
+@dataclass
+class FrameBatch:
+    origins: torch.Tensor      # (N, 3)
+    dirs: torch.Tensor         # (N, 3)
+    grey: torch.Tensor         # (N,) the blurred frame's linear intensity
+    t: float                   # normalised mid-exposure time of the frame
+
+
+class FrameSampler:
+    """Rays through the blurred grey frames (the paper's DNeRF-on-blurred-frames baseline):
+    per batch one frame index, shared by all views (they are synchronised), views uniform
+    per ray, pixels uniform; the frame is rendered at its mid-exposure time."""
+
+    def __init__(self, train_set, *, views=None, seed: int = 0):
+        self.ts = train_set
+        self.views = list(train_set.train_views if views is None else views)
+        stacks, times = [], []
+        for v in self.views:
+            fr = train_set.frames(v)
+            if fr is None or not len(fr["frames"]):
+                raise InputError(f"{train_set.path}: view {v} has no blurred frames; "
+                                 "frame supervision needs them (simulate with --frame-rate > 0)")
+            stacks.append(np.asarray(fr["frames"], np.float32).reshape(len(fr["frames"]), -1))
+            mid = np.asarray(fr["t_start"], np.int64) + (np.asarray(fr["t_end"], np.int64)
+                                                        - np.asarray(fr["t_start"], np.int64)) // 2
+            times.append(mid)
+        n = min(len(s) for s in stacks)
+        self.frames = np.stack([s[:n] for s in stacks])               # (V, F, P)
+        t0, t1 = train_set.time_range
+        keep = (times[0][:n] >= t0) & (times[0][:n] <= t1)
+        if not keep.any():
+            raise InputError(f"{train_set.path}: no blurred frame lies in the training time range")
+        self.frame_index = np.flatnonzero(keep)
+        self.t_norm = train_set.normalized_time(times[0][:n])
+        self.rng = np.random.default_rng(seed)
+        o, d = [], []
+        for v in self.views:
+            ov, dv = camera_rays(camera_of(train_set.K(v), train_set.width, train_set.height),
+                                 train_set.pose(v))
+            o.append(ov)
+            d.append(dv)
+        self.origins, self.dirs = torch.stack(o), torch.stack(d)
+        self.P = train_set.width * train_set.height
+
+    def sample(self, rays: int) -> FrameBatch:
+        f = int(self.frame_index[self.rng.integers(len(self.frame_index))])
+        vi = self.rng.integers(len(self.views), size=rays)
+        pix = self.rng.integers(self.P, size=rays)
+        vt, pt = torch.as_tensor(vi), torch.as_tensor(pix)
+        return FrameBatch(origins=self.origins[vt, pt], dirs=self.dirs[vt, pt],
+                          grey=torch.as_tensor(self.frames[vi, f, pix]), t=float(self.t_norm[f]))

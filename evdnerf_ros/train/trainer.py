@@ -34,12 +34,12 @@ import numpy as np
 import torch
 
 from ..errors import EvdnerfError, InputError, OutputExistsError
-from ..field import OccupancyGrid, make_field, render_rays
+from ..field import DynamicRegion, OccupancyGrid, make_field, render_rays
 from .checkpoint import (CheckpointError, global_rng_states, load_checkpoint, save_checkpoint,
                          set_global_rng_states)
 from .config import TrainConfig, resolve_config
 from .losses import bin_loss, mse_loss, no_event_hinge
-from .sampler import RaySampler, default_box
+from .sampler import FrameSampler, RaySampler, default_box
 
 DEFAULT_ITERS = 2000
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -98,12 +98,19 @@ class Trainer:
         self.field = make_field(cfg.backbone, **cfg.field)
         self.params = [p for p in self.field.parameters() if p.requires_grad]
         self.opt = torch.optim.Adam(self.params, lr=cfg.lr)
-        self.sampler = RaySampler(train_set, event_ray_fraction=cfg.event_ray_fraction,
-                                  seed=cfg.seed)
         self.gen = torch.Generator().manual_seed(cfg.seed + 1)
         self.c_pos, self.c_neg = (float(c) for c in train_set.thresholds)
         self.occupancy = (OccupancyGrid(cfg.occupancy_resolution) if cfg.occupancy_resolution
                           else None)
+        self.dynamic = (DynamicRegion.from_event_footprint(
+            train_set, self.box, resolution=cfg.dynamic_resolution,
+            min_events=cfg.dynamic_min_events, dilate_px=cfg.dynamic_dilate_px,
+            misses=cfg.dynamic_misses)
+            if cfg.dynamic_region and cfg.supervision == "events" else None)
+        self.sampler = RaySampler(train_set, event_ray_fraction=cfg.event_ray_fraction,
+                                  seed=cfg.seed, dynamic=self.dynamic, box=self.box)
+        self.frame_sampler = (FrameSampler(train_set, seed=cfg.seed)
+                              if cfg.supervision == "frames" else None)
         self.iteration = 0
         self.train_s = 0.0
         self.elapsed_s = 0.0
@@ -144,10 +151,18 @@ class Trainer:
     # ------------------------------------------------------------------ one step
     def compute_loss(self, batch):
         cfg = self.cfg
+        if self.frame_sampler is not None:
+            r = render_rays(self.field, batch.origins, batch.dirs, batch.t, self.box, cfg.n_samples,
+                            near=cfg.near, far=cfg.far, background=cfg.background,
+                            perturb=cfg.perturb, generator=self.gen, occupancy=self.occupancy)
+            loss = ((r["grey"] - batch.grey) ** 2).mean()
+            reg = plane_regularisers(self.field, cfg)
+            return loss if reg is None else loss + reg
         r0, r1 = render_rays(self.field, batch.origins, batch.dirs, [batch.t0, batch.t1],
                              self.box, cfg.n_samples, near=cfg.near, far=cfg.far,
                              background=cfg.background, perturb=cfg.perturb, generator=self.gen,
-                             occupancy=self.occupancy)
+                             occupancy=self.occupancy, dynamic=self.dynamic,
+                             changes_only=self.dynamic is not None)
         dl_hat = torch.log(r1["grey"] + cfg.log_eps) - torch.log(r0["grey"] + cfg.log_eps)
         if cfg.loss == "mse":
             loss = mse_loss(dl_hat, batch.dl, cfg.mse_pred_scale, cfg.mse_target_scale)
@@ -170,7 +185,10 @@ class Trainer:
         for g in self.opt.param_groups:
             g["lr"] = lr
         crop = cfg.crop_fraction if self.iteration < cfg.crop_warmup_iters else None
-        batch = self.sampler.sample(cfg.rays, usable_windows=self.usable_windows(n), crop=crop)
+        if self.frame_sampler is not None:
+            batch = self.frame_sampler.sample(cfg.rays)
+        else:
+            batch = self.sampler.sample(cfg.rays, usable_windows=self.usable_windows(n), crop=crop)
         if (self.occupancy is not None and self.iteration >= cfg.occupancy_warmup
                 and (self.iteration - cfg.occupancy_warmup) % cfg.occupancy_every == 0):
             self.occupancy.update(self.field, threshold=cfg.occupancy_threshold)
@@ -200,7 +218,9 @@ class Trainer:
     # ------------------------------------------------------------------ state
     def rng_state(self) -> dict:
         return {"global": global_rng_states(), "sampler": self.sampler.rng.bit_generator.state,
-                "perturb": self.gen.get_state()}
+                "perturb": self.gen.get_state(),
+                "frames": None if self.frame_sampler is None
+                else self.frame_sampler.rng.bit_generator.state}
 
     def save(self, path=None) -> Path:
         path = Path(path) if path is not None else self.run_dir / CHECKPOINT_NAME
@@ -209,6 +229,8 @@ class Trainer:
                                backbone=self.cfg.backbone, rng=self.rng_state(), box=self.box,
                                extra={"occupied": None if self.occupancy is None
                                       else self.occupancy.occupied.clone(),
+                                      "dynamic": None if self.dynamic is None
+                                      else self.dynamic.mask.clone(),
                                       "train_s": self.train_s, "elapsed_s": self.elapsed_s,
                                       "skipped": self.skipped, "iters": self.iters,
                                       "minutes": self.minutes})
@@ -235,9 +257,13 @@ class Trainer:
         self.skipped = int(ex.get("skipped", 0))
         if self.occupancy is not None and ex.get("occupied") is not None:
             self.occupancy.occupied = ex["occupied"].clone()
+        if ex.get("dynamic") is not None:
+            self.dynamic = DynamicRegion(ex["dynamic"].clone())
         rng = data["rng"]
         set_global_rng_states(rng["global"])
         self.sampler.rng.bit_generator.state = rng["sampler"]
+        if self.frame_sampler is not None:
+            self.frame_sampler.rng.bit_generator.state = rng["frames"]
         self.gen.set_state(rng["perturb"])
 
     def init_from(self, path) -> None:
@@ -264,7 +290,8 @@ class Trainer:
             ctx = {"train_set": self.ts, "box": self.box, "n_samples": self.cfg.n_samples,
                    "near": self.cfg.near, "far": self.cfg.far, "background": self.cfg.background,
                    "log_eps": self.cfg.log_eps, "iteration": self.iteration,
-                   "windows": self.n_windows(), "occupancy": self.occupancy}
+                   "windows": self.n_windows(), "occupancy": self.occupancy,
+                   "dynamic": self.dynamic}
             was = self.field.training
             self.field.eval()
             with torch.no_grad():

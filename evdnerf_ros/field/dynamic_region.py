@@ -1,0 +1,120 @@
+"""Where the scene may change: a voxel grid carved from the training views' event footprints.
+
+A static camera sees an event at a pixel only if something along that pixel's ray changed.
+So a point that projects, in some training view, onto a pixel that never had an event
+(and is not hidden there) cannot have changed.  ``DynamicRegion.from_event_footprint``
+keeps the voxels whose centre projects onto an event pixel (the view's *footprint*:
+pixels with at least ``min_events`` events over the whole sequence, dilated by
+``dilate_px``) in every static training view that sees it — all but ``misses`` of them,
+to tolerate occlusion of the moving part in a few views.  It is the visual hull of the
+event footprints, i.e. space carving with events.
+
+Outside the region the field is *static* (``DynamicField.decode_static``): no time-plane
+work, and a ray that crosses no dynamic voxel predicts exactly no change.  Besides the
+saving this is a strong prior: the changes that explain one view's events cannot hide in
+front of another view where that view saw nothing, which is what makes novel views work
+from a few training views.  Views with a moving camera (a pose trajectory) carve nothing.
+
+Coordinates given to ``query`` are box-normalised [-1, 1] (``render.normalize_points``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..errors import InputError
+
+
+def event_footprint(train_set, view, *, min_events: int = 1, dilate_px: int = 1) -> np.ndarray:
+    """(H, W) bool: pixels with >= ``min_events`` events in the view, dilated by ``dilate_px``."""
+    W, H = train_set.width, train_set.height
+    counts = np.zeros(W * H, np.int64)
+    for block in train_set.iter_events(view):
+        counts += np.bincount(block["y"].astype(np.int64) * W + block["x"], minlength=W * H)
+    fp = counts.reshape(H, W) >= int(min_events)
+    if dilate_px > 0:
+        k = 2 * int(dilate_px) + 1
+        fp = F.max_pool2d(torch.from_numpy(fp)[None, None].float(), k, stride=1,
+                          padding=int(dilate_px))[0, 0].numpy() > 0.5
+    return fp
+
+
+class DynamicRegion:
+    """Boolean grid ``mask[ix, iy, iz]`` (axis order x, y, z) over the scene box."""
+
+    def __init__(self, mask):
+        m = torch.as_tensor(mask).bool()
+        if m.dim() != 3 or min(m.shape) < 1:
+            raise ValueError(f"dynamic region mask must be a 3D boolean grid, got shape {tuple(m.shape)}")
+        self.mask = m
+        self.resolution = tuple(int(v) for v in m.shape)
+
+    @classmethod
+    def from_event_footprint(cls, train_set, box, *, resolution: int = 64, min_events: int = 1,
+                             dilate_px: int = 1, misses: int = 0, views=None) -> "DynamicRegion":
+        """The visual hull of the static training views' event footprints (module docstring)."""
+        views = list(train_set.train_views if views is None else views)
+        static = [v for v in views if train_set.poses(v) is None]
+        if not static:
+            raise InputError(f"{getattr(train_set, 'path', 'training set')}: no static training "
+                             "view to carve a dynamic region from; set dynamic_region: false")
+        box = np.asarray(box, np.float64).reshape(2, 3)
+        r = int(resolution)
+        axes = [box[0, i] + (np.arange(r) + 0.5) / r * (box[1, i] - box[0, i]) for i in range(3)]
+        centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        seen = np.zeros(len(centres), np.int32)
+        hit = np.zeros(len(centres), np.int32)
+        W, H = train_set.width, train_set.height
+        for v in static:
+            fp = event_footprint(train_set, v, min_events=min_events, dilate_px=dilate_px)
+            T = train_set.pose(v)
+            K = train_set.K(v)
+            pc = (centres - T[:3, 3]) @ T[:3, :3]                  # world -> camera (R^T (X - c))
+            z = pc[:, 2]
+            front = z > 1e-9
+            zs = np.where(front, z, 1.0)
+            u = np.rint(K[0, 0] * pc[:, 0] / zs + K[0, 2])
+            w = np.rint(K[1, 1] * pc[:, 1] / zs + K[1, 2])
+            inside = front & (u >= 0) & (u < W) & (w >= 0) & (w < H)
+            ui, wi = u[inside].astype(np.int64), w[inside].astype(np.int64)
+            seen[inside] += 1
+            hit[np.flatnonzero(inside)[fp[wi, ui]]] += 1
+        mask = (hit >= 1) & (hit >= seen - int(misses))
+        return cls(torch.from_numpy(mask.reshape(r, r, r)))
+
+    def query(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3) normalised points -> (N,) bool, True where the scene may change."""
+        res = torch.tensor(self.resolution, device=x.device)
+        i = ((x + 1.0) * 0.5 * res).long()
+        i = torch.minimum(i.clamp(min=0), res - 1)
+        m = self.mask.to(x.device)
+        return m[i[:, 0], i[:, 1], i[:, 2]]
+
+    @torch.no_grad()
+    def rays_crossing(self, origins: torch.Tensor, dirs: torch.Tensor, box, *, near: float = 0.0,
+                      far: float = float("inf"), chunk: int = 4096) -> torch.Tensor:
+        """(N,) bool: rays that pass through a dynamic voxel (tested every quarter voxel along
+        the part of the ray inside the box).  Other rays of a static camera see no change."""
+        from .render import normalize_points, ray_box_intersect
+
+        lo, hi = (np.asarray(b, np.float64) for b in np.asarray(box, np.float64).reshape(2, 3))
+        diag = float(np.linalg.norm(hi - lo))
+        step = float(np.min((hi - lo) / np.array(self.resolution))) / 4.0
+        n_steps = max(2, int(np.ceil(diag / step)) + 1)
+        out = torch.zeros(origins.shape[0], dtype=torch.bool)
+        for s in range(0, origins.shape[0], chunk):
+            o, d = origins[s:s + chunk], dirs[s:s + chunk]
+            t0, t1, hit = ray_box_intersect(o, d, box, near, far)
+            u = torch.linspace(0.0, 1.0, n_steps)
+            z = t0[:, None] + (t1 - t0)[:, None] * u[None, :]
+            pts = o[:, None, :] + d[:, None, :] * z[..., None]
+            dyn = self.query(normalize_points(pts.reshape(-1, 3), box)).reshape(-1, n_steps)
+            out[s:s + chunk] = hit & dyn.any(dim=1)
+        return out
+
+    @property
+    def fraction(self) -> float:
+        """Share of the box's voxels that may change."""
+        return float(self.mask.float().mean())
