@@ -23,6 +23,8 @@ def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: i
     t0, t1 = train_set.time_range
     edges = window_edges(t0, t1, n_windows)
     ks = protocol_windows(n_windows) if windows is None else list(windows)
+    if not len(ks):
+        ks = [0]        # one window (the whole sequence): the protocol would select none
     preds, gts = [], []
     for v in views:
         cam = camera_of(train_set.K(v), train_set.width, train_set.height)
@@ -82,7 +84,7 @@ def load_field(run_dir):
 
 
 def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int | None = None,
-             image_path=None, log=print) -> dict:
+             image_path=None, factors=(1, 4, 8), log=print) -> dict:
     """`evdnerf eval RUN TRAIN.h5`: events metrics on validation and training views at the
     trained window count and 4x / 8x finer windows; GT vs prediction event images."""
     import torch
@@ -100,7 +102,7 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
         for split, views in splits.items():
             if not views:
                 continue
-            for factor in (1, 4, 8):
+            for factor in factors:
                 pred, gt, m = evaluate_views(field, ts, views, n * factor, box=box,
                                              n_samples=cfg.n_samples, log_eps=cfg.log_eps,
                                              near=cfg.near, far=cfg.far, background=cfg.background,

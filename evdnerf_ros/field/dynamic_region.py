@@ -7,7 +7,9 @@ keeps the voxels whose centre projects onto an event pixel (the view's *footprin
 pixels with at least ``min_events`` events over the whole sequence, dilated by
 ``dilate_px``) in every static training view that sees it — all but ``misses`` of them,
 to tolerate occlusion of the moving part in a few views.  It is the visual hull of the
-event footprints, i.e. space carving with events.
+event footprints, i.e. space carving with events.  A view with no events at all carves
+nothing (it is more likely a failed recording than proof that nothing moved); when no view
+has events the region is empty and the field stays static.
 
 Outside the region the field is *static* (``DynamicField.decode_static``): no time-plane
 work, and a ray that crosses no dynamic voxel predicts exactly no change.  Besides the
@@ -69,6 +71,8 @@ class DynamicRegion:
         W, H = train_set.width, train_set.height
         for v in static:
             fp = event_footprint(train_set, v, min_events=min_events, dilate_px=dilate_px)
+            if not fp.any():
+                continue        # a view with no events (a failed recording?) carves nothing
             T = train_set.pose(v)
             K = train_set.K(v)
             pc = (centres - T[:3, 3]) @ T[:3, :3]                  # world -> camera (R^T (X - c))

@@ -196,6 +196,12 @@ class Trainer:
         loss = self.compute_loss(batch)
         value = float(loss.detach())
         ok = math.isfinite(value)
+        if ok and not loss.requires_grad:
+            # nothing in this batch depends on the field (every ray crosses no dynamic
+            # voxel): a valid step that changes nothing
+            self.iteration += 1
+            self.last_loss = value
+            return value
         if ok:
             loss.backward()
             clip = cfg.grad_clip if cfg.grad_clip > 0 else float("inf")
