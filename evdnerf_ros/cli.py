@@ -179,7 +179,7 @@ def _cmd_report(args) -> int:
 def _cmd_demo(args) -> int:
     from .demo import run_demo
 
-    run_demo(Path(args.output), overwrite=args.overwrite)
+    run_demo(Path(args.output), overwrite=args.overwrite, train_minutes=args.train_minutes)
     return 0
 
 
@@ -192,13 +192,16 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     p = sub.add_parser("demo", help="run the end-to-end demo on the embedded virtual scene",
-                       description="Generate the embedded rotating-bar scene's events, write "
-                                   "them as a rosbag2 (EventPacket evt3) with camera info and "
-                                   "trigger events, convert them to every container, read each "
-                                   "back and check it is bit-exact, and render an event image "
-                                   "and the event-rate plot.")
+                       description="Simulate a capture session of the servo-swung fork (one "
+                                   "rosbag2 per view), convert a recording to every container and "
+                                   "check it is bit-exact, draw event images and event-rate plots, "
+                                   "sync the views, convert to a training set, train the field on "
+                                   "the events, evaluate it on validation views and report "
+                                   "events-PSNR against wall time.")
     p.add_argument("-o", "--output", default="demo_output", help="output folder (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    p.add_argument("--train-minutes", type=float, default=2.0,
+                   help="training budget of the demo's field (default: %(default)s)")
     p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("convert-events", help="convert events between RAW, npz, h5 and bags",
