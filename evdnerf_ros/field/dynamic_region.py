@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import InputError
+from .occupancy import grid_lookup
 
 
 def event_footprint(train_set, view, *, min_events: int = 1, dilate_px: int = 1) -> np.ndarray:
@@ -90,11 +91,7 @@ class DynamicRegion:
 
     def query(self, x: torch.Tensor) -> torch.Tensor:
         """(N, 3) normalised points -> (N,) bool, True where the scene may change."""
-        res = torch.tensor(self.resolution, device=x.device)
-        i = ((x + 1.0) * 0.5 * res).long()
-        i = torch.minimum(i.clamp(min=0), res - 1)
-        m = self.mask.to(x.device)
-        return m[i[:, 0], i[:, 1], i[:, 2]]
+        return grid_lookup(self.mask, x)
 
     @torch.no_grad()
     def rays_crossing(self, origins: torch.Tensor, dirs: torch.Tensor, box, *, near: float = 0.0,

@@ -18,6 +18,16 @@ import torch
 import torch.nn.functional as F
 
 
+def grid_lookup(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Value of the cell (nearest, clamped) of a (Rx, Ry, Rz) grid spanning [-1, 1]^3 at
+    each of the (N, 3) normalised points."""
+    res = torch.tensor(grid.shape, device=x.device)
+    i = ((x + 1.0) * 0.5 * res).long()
+    i = torch.minimum(i.clamp(min=0), res - 1)
+    g = grid.to(x.device)
+    return g[i[:, 0], i[:, 1], i[:, 2]]
+
+
 class OccupancyGrid:
     def __init__(self, resolution: int | Sequence[int] = 32, enabled: bool = True):
         r = (int(resolution),) * 3 if isinstance(resolution, int) else tuple(
@@ -78,11 +88,7 @@ class OccupancyGrid:
         """(N, 3) normalised points -> (N,) bool, True where the cell may be occupied."""
         if not self.enabled:
             return torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
-        res = torch.tensor(self.resolution, device=x.device)
-        i = ((x + 1.0) * 0.5 * res).long()
-        i = torch.minimum(i.clamp(min=0), res - 1)
-        occ = self.occupied.to(x.device)
-        return occ[i[:, 0], i[:, 1], i[:, 2]]
+        return grid_lookup(self.occupied, x)
 
     @property
     def fraction_occupied(self) -> float:

@@ -56,6 +56,23 @@ def default_box(train_set, fraction: float = 0.35) -> np.ndarray:
     return np.stack([target - half, target + half])
 
 
+def view_rays(train_set, views) -> tuple[torch.Tensor, torch.Tensor]:
+    """Origins and unit directions of every pixel of each view, (V, H*W, 3) float32 each."""
+    o, d = zip(*(camera_rays(camera_of(train_set.K(v), train_set.width, train_set.height),
+                             train_set.pose(v)) for v in views))
+    return torch.stack(o), torch.stack(d)
+
+
+def _pick_per_view(pix: np.ndarray, vi: np.ndarray, u: np.ndarray, candidates) -> None:
+    """In place: pix[j] = a uniform pick (by u[j] in [0, 1)) among candidates(vi[j]),
+    left unchanged where that view has no candidates."""
+    for v in np.unique(vi):
+        cand = candidates(int(v))
+        if cand.size:
+            sel = np.flatnonzero(vi == v)
+            pix[sel] = cand[np.minimum((u[sel] * cand.size).astype(np.int64), cand.size - 1)]
+
+
 @dataclass
 class RayBatch:
     origins: torch.Tensor      # (N, 3)
@@ -81,14 +98,7 @@ class RaySampler:
         self.rng = np.random.default_rng(seed)
         self.width, self.height = int(train_set.width), int(train_set.height)
         self.P = self.width * self.height
-        o, d = [], []
-        for v in self.views:
-            cam = camera_of(train_set.K(v), self.width, self.height)
-            ov, dv = camera_rays(cam, train_set.pose(v))
-            o.append(ov)
-            d.append(dv)
-        self.origins = torch.stack(o)          # (V, P, 3)
-        self.dirs = torch.stack(d)
+        self.origins, self.dirs = view_rays(train_set, self.views)     # (V, P, 3) each
         # With a dynamic region, uniform rays come only from the pixels whose rays cross
         # it: every other pixel of a static view predicts exactly no change.
         self.active = None
@@ -160,12 +170,7 @@ class RaySampler:
         vi = rng.integers(len(self.views), size=rays)
         if self.active is not None:
             pix = rng.integers(self.P, size=rays)
-            u = rng.random(rays)
-            for v in np.unique(vi):
-                cand = self.active[int(v)]
-                if cand.size:
-                    sel = np.flatnonzero(vi == v)
-                    pix[sel] = cand[np.minimum((u[sel] * cand.size).astype(np.int64), cand.size - 1)]
+            _pick_per_view(pix, vi, rng.random(rays), lambda v: self.active[v])
         elif crop is None or crop >= 1.0:
             pix = rng.integers(self.P, size=rays)
         else:
@@ -175,13 +180,8 @@ class RaySampler:
             y = boxes[:, 1] + np.minimum((uy * boxes[:, 3]).astype(np.int64), boxes[:, 3] - 1)
             pix = y * self.width + x
         n_ev = int(round(self.frac * rays))
-        u = rng.random(n_ev)
-        head = vi[:n_ev]
-        for v in np.unique(head):                  # first n_ev rays: event pixels
-            cand = self.event_pixels(int(v), k)
-            if cand.size:
-                sel = np.flatnonzero(head == v)
-                pix[sel] = cand[np.minimum((u[sel] * cand.size).astype(np.int64), cand.size - 1)]
+        # the first n_ev rays: event pixels (a view without any keeps its uniform pixel)
+        _pick_per_view(pix[:n_ev], vi[:n_ev], rng.random(n_ev), lambda v: self.event_pixels(v, k))
         vi_t = torch.as_tensor(vi)
         pix_t = torch.as_tensor(pix)
         dl = torch.as_tensor(self._dl[vi, k, pix])
@@ -230,13 +230,7 @@ class FrameSampler:
         self.frame_index = np.flatnonzero(keep)
         self.t_norm = train_set.normalized_time(times[0][:n])
         self.rng = np.random.default_rng(seed)
-        o, d = [], []
-        for v in self.views:
-            ov, dv = camera_rays(camera_of(train_set.K(v), train_set.width, train_set.height),
-                                 train_set.pose(v))
-            o.append(ov)
-            d.append(dv)
-        self.origins, self.dirs = torch.stack(o), torch.stack(d)
+        self.origins, self.dirs = view_rays(train_set, self.views)
         self.P = train_set.width * train_set.height
 
     def sample(self, rays: int) -> FrameBatch:
