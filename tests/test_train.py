@@ -244,3 +244,62 @@ def test_minutes_budget_and_existing_run(train_h5, tmp_path):
     r2 = run_train(train_h5, tmp_path / "M", config=small_config(rays=32), iters=2,
                    overwrite=True, log=lambda *_: None)
     assert r2["iterations"] == 2 and not r2["resumed"]
+
+
+# ------------------------------------------------------------------ learned thresholds, reuse
+def test_learned_thresholds_recover_the_balance(train_h5):
+    """Declared thresholds 0.28/0.12 on data made with 0.2/0.2: the learned balance returns
+    to the truth (the mean is kept: events fix log changes only up to one scale)."""
+    from evdnerf_ros.io.trainingset import TrainingSet
+    from evdnerf_ros.train.thresholds import LearnedThresholds
+
+    lt = LearnedThresholds(0.3, 0.1)
+    assert lt.values() == pytest.approx((0.3, 0.1))
+    assert torch.allclose(lt.log_change(torch.tensor([[2, 1], [0, 3]])), torch.tensor([0.5, -0.3]))
+    with TrainingSet(train_h5) as ts:
+        true = ts.thresholds
+        assert true == (0.2, 0.2)
+        ts.c_pos, ts.c_neg = 0.28, 0.12
+        tr = Trainer(ts, small_config(learn_thresholds=True, eval_every=100), iters=200,
+                     log=lambda *_: None)
+        tr.train()
+        c_pos, c_neg = tr.thresholds.values()
+    assert c_pos + c_neg == pytest.approx(0.4, abs=1e-6)
+    assert abs(c_pos - 0.2) < 0.02, (c_pos, c_neg)
+
+
+def test_learned_thresholds_resume_bit_exactly(train_h5, tmp_path):
+    cfg = small_config(learn_thresholds=True, rays=64, checkpoint_every=5, eval_every=5)
+    run_train(train_h5, tmp_path / "A", config=cfg, iters=10, log=lambda *_: None)
+    run_train(train_h5, tmp_path / "B", config=cfg, iters=5, log=lambda *_: None)
+    run_train(train_h5, tmp_path / "B", iters=10, log=lambda *_: None)
+    a, b = (load_checkpoint(tmp_path / r / "checkpoint.pt") for r in "AB")
+    assert torch.equal(a["extra"]["thresholds"]["balance"], b["extra"]["thresholds"]["balance"])
+    assert a["extra"]["thresholds"]["balance"] != 0.0
+    for k in a["field"]:
+        assert torch.equal(a["field"][k], b["field"][k]), k
+    line = json.loads((tmp_path / "A" / "metrics.jsonl").read_text().splitlines()[-1])
+    assert line["c_pos"] + line["c_neg"] == pytest.approx(0.4, abs=1e-6)
+
+
+def test_polarity_counts_match_log_changes(train_set):
+    edges = np.linspace(*train_set.time_range, 9).astype(np.int64)
+    v = train_set.train_views[0]
+    counts = train_set.polarity_count_stack(v, edges)
+    assert counts.shape == (8, train_set.height, train_set.width, 2) and counts.sum() > 0
+    c_pos, c_neg = train_set.thresholds
+    np.testing.assert_allclose(c_pos * counts[..., 0] - c_neg * counts[..., 1],
+                               train_set.log_change_stack(v, edges), rtol=0, atol=1e-6)
+
+
+def test_sample_reuse_switch_is_the_same_estimate(train_set):
+    """Without jitter, rendering both window ends from shared samples and rendering them
+    separately give the same loss; reuse only saves the repeated space work."""
+    losses = []
+    for reuse in (True, False):
+        tr = Trainer(train_set, small_config(sample_reuse=reuse, perturb=False), iters=1,
+                     log=lambda *_: None)
+        tr.sampler.set_windows(8)
+        batch = tr.sampler.sample(128)
+        losses.append(float(tr.compute_loss(batch).detach()))
+    assert losses[0] == pytest.approx(losses[1], rel=1e-5) and losses[0] > 0

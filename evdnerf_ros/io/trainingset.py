@@ -674,14 +674,22 @@ class TrainingSet:
     def log_change_stack(self, view, edges) -> np.ndarray:
         """(K, H, W) float32 dL images of the K windows [edges[k], edges[k+1]), streamed in blocks."""
         name = self._name(view)
-        edges = np.asarray(edges)
-        if edges.ndim != 1 or edges.size < 2 or edges.dtype.kind not in "iu" or np.any(np.diff(edges) <= 0):
-            raise InputError("window edges must be a strictly increasing 1-D int64 array of >= 2 times")
-        edges = edges.astype(np.int64)
-        W, H = self.width, self.height
-        K, P = edges.size - 1, W * H
+        edges = _check_edges(edges)
         if not self._infos[name].has_events:
             return self._dl_from_windows(name, edges)
+        counts = self.polarity_count_stack(name, edges)
+        return (self.c_pos * counts[..., 0] - self.c_neg * counts[..., 1]).astype(np.float32)
+
+    def polarity_count_stack(self, view, edges) -> np.ndarray:
+        """(K, H, W, 2) event counts (positive, negative) of the K windows [edges[k], edges[k+1]);
+        views stored as pre-binned dL windows have no counts (InputError)."""
+        name = self._name(view)
+        edges = _check_edges(edges)
+        if not self._infos[name].has_events:
+            raise InputError(f"{self.path}: view {name} holds pre-binned dL windows, not events, so "
+                             "it has no per-polarity counts (learned thresholds need events)")
+        W, H = self.width, self.height
+        K, P = edges.size - 1, W * H
         counts = np.zeros((K, H, W, 2), np.int64 if K * P < (1 << 22) else np.int32)
         flat_counts = counts.reshape(-1)
         for ev in self.iter_events(name, int(edges[0]), int(edges[-1])):
@@ -690,7 +698,7 @@ class TrainingSet:
             flat = ((k - ka) * P + ev["y"].astype(np.int64) * W + ev["x"]) * 2 + (ev["p"] < 0)
             part = np.bincount(flat, minlength=(kb - ka + 1) * P * 2)
             flat_counts[ka * P * 2:(kb + 1) * P * 2] += part.astype(counts.dtype, copy=False)
-        return (self.c_pos * counts[..., 0] - self.c_neg * counts[..., 1]).astype(np.float32)
+        return counts
 
     def _dl_from_windows(self, name: str, edges: np.ndarray) -> np.ndarray:
         dl_edges, windows = self.dl_windows(name)
@@ -721,3 +729,10 @@ class TrainingSet:
     def __repr__(self) -> str:
         return (f"TrainingSet({str(self.path)!r}: {len(self.views)} views, {self.width}x{self.height}, "
                 f"[{self.t_start}, {self.t_end}) ns)")
+
+
+def _check_edges(edges) -> np.ndarray:
+    edges = np.asarray(edges)
+    if edges.ndim != 1 or edges.size < 2 or edges.dtype.kind not in "iu" or np.any(np.diff(edges) <= 0):
+        raise InputError("window edges must be a strictly increasing 1-D int64 array of >= 2 times")
+    return edges.astype(np.int64)

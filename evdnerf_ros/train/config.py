@@ -116,6 +116,15 @@ class TrainConfig:
     """Second-difference smoothness along time of the time planes (``planes`` only)."""
     time_l1_weight: float = 0.0
     """L1 of (time planes - 1) (``planes`` only; 1 means static)."""
+    learn_thresholds: bool = False
+    """Learn the balance of C+ and C- (their mean stays the training set's, since events fix
+    log changes only up to one scale); see ``train/thresholds.py``.  Events supervision only."""
+    threshold_lr: float = 1e-2
+    """Adam learning rate of the threshold balance (follows the LR warm-up)."""
+    sample_reuse: bool = True
+    """Render both ends of a window from the same ray samples and space features (a static
+    training camera's samples do not move); False renders them separately (for measuring
+    the saving: twice the space work, and independent sample jitter in dL_hat)."""
 
     # ---- optimiser
     lr: float = 2e-2
@@ -177,7 +186,10 @@ class TrainConfig:
                 ok = False
             if not ok:
                 bad(f"box must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with max > min, got {self.box}")
-        for name in ("lr", "log_eps", "mse_pred_scale", "mse_target_scale", "box_fraction"):
+        if self.learn_thresholds and self.supervision != "events":
+            bad("learn_thresholds needs supervision: events")
+        for name in ("lr", "log_eps", "mse_pred_scale", "mse_target_scale", "box_fraction",
+                     "threshold_lr"):
             if not float(getattr(self, name)) > 0:
                 bad(f"{name} must be > 0")
         if int(self.dynamic_resolution) < 1:

@@ -1,6 +1,7 @@
 """Event losses on the predicted log change dL_hat against the ground truth dL.
 
-``dl`` is the GT change of a window, C+ N+ - C- N- (paper Eq. 5); ``dl_hat`` is
+``dl`` is the GT change of a window, C+ N+ - C- N- (paper Eq. 5); thresholds are floats or
+learned 0-d tensors; ``dl_hat`` is
 log(B1 + eps) - log(B0 + eps) from the two renders.  All functions return the mean over
 the rays given (a 0-d tensor; 0 for no rays).
 """
@@ -10,7 +11,7 @@ from __future__ import annotations
 import torch
 
 
-def bin_bounds(dl: torch.Tensor, c_pos: float, c_neg: float, *, paper: bool = False):
+def bin_bounds(dl: torch.Tensor, c_pos, c_neg, *, paper: bool = False):
     """The quantisation bin [lo, hi) of every GT change.
 
     ``paper=False`` (polarity-aware): positive dL -> [dL, dL + C+), negative dL ->
@@ -20,15 +21,15 @@ def bin_bounds(dl: torch.Tensor, c_pos: float, c_neg: float, *, paper: bool = Fa
     [0, C+).
     """
     dl = dl.to(torch.float32)
+    c_pos, c_neg = _threshold(c_pos), _threshold(c_neg)
     if paper:
-        c = torch.where(dl < 0, torch.full_like(dl, c_neg), torch.full_like(dl, c_pos))
-        return dl, dl + c
+        return dl, dl + torch.where(dl < 0, c_neg, c_pos)
     lo = torch.where(dl > 0, dl, dl - c_neg)
     hi = torch.where(dl < 0, dl, dl + c_pos)
     return lo, hi
 
 
-def bin_loss(dl_hat: torch.Tensor, dl: torch.Tensor, c_pos: float, c_neg: float, *,
+def bin_loss(dl_hat: torch.Tensor, dl: torch.Tensor, c_pos, c_neg, *,
              paper: bool = False) -> torch.Tensor:
     """Dead-zone bin loss: 0 inside the bin of ``dl``, else (dl_hat - bin centre)^2."""
     if dl_hat.numel() == 0:
@@ -49,7 +50,7 @@ def mse_loss(dl_hat: torch.Tensor, dl: torch.Tensor, pred_scale: float = 1.0,
     return ((dl_hat / pred_scale - dl.to(torch.float32) / target_scale) ** 2).mean()
 
 
-def no_event_hinge(dl_hat: torch.Tensor, dl: torch.Tensor, c_pos: float, c_neg: float,
+def no_event_hinge(dl_hat: torch.Tensor, dl: torch.Tensor, c_pos, c_neg,
                    no_event: torch.Tensor | None = None) -> torch.Tensor:
     """E-NeRF's relu(|dL_hat| - C) averaged over the rays without events (C+ for a
     positive prediction, C- for a negative one).  ``no_event`` (bool mask) defaults to
@@ -58,5 +59,10 @@ def no_event_hinge(dl_hat: torch.Tensor, dl: torch.Tensor, c_pos: float, c_neg: 
     if not bool(mask.any()):
         return dl_hat.sum() * 0.0
     d = dl_hat[mask]
-    c = torch.where(d < 0, torch.full_like(d, c_neg), torch.full_like(d, c_pos))
+    c = torch.where(d < 0, _threshold(c_neg), _threshold(c_pos))
     return torch.relu(d.abs() - c).mean()
+
+
+def _threshold(c) -> torch.Tensor:
+    """A threshold as a float32 tensor: a float, or a learned 0-d tensor (keeps its gradient)."""
+    return c.to(torch.float32) if torch.is_tensor(c) else torch.tensor(float(c))

@@ -85,12 +85,16 @@ class RayBatch:
     n_windows: int
     views: np.ndarray          # (N,) view index into the sampler's view list
     pixels: np.ndarray         # (N,) flat pixel index
+    counts: torch.Tensor | None = None  # (N, 2) (positive, negative) event counts, when kept
 
 
 class RaySampler:
     def __init__(self, train_set, *, views=None, event_ray_fraction: float = 0.5,
-                 seed: int = 0, dynamic=None, box=None):
+                 seed: int = 0, dynamic=None, box=None, keep_counts: bool = False):
+        """``keep_counts``: also return each ray's per-polarity event counts (for learned
+        thresholds; needs views stored as events)."""
         self.ts = train_set
+        self.keep_counts = bool(keep_counts)
         self.views = list(train_set.train_views if views is None else views)
         if not self.views:
             raise InputError(f"{train_set.path}: no training views")
@@ -109,6 +113,7 @@ class RaySampler:
         self._n = None
         self._edges = None
         self._dl = None                        # (V, n, P) float32
+        self._counts = None                    # (V, n, P, 2) int16/int32 with keep_counts
         self._pix: dict = {}
         self._centroids: dict = {}
 
@@ -118,8 +123,16 @@ class RaySampler:
             return
         t0, t1 = self.ts.time_range
         edges = window_edges(t0, t1, int(n))
-        self._dl = np.stack([self.ts.log_change_stack(v, edges).reshape(len(edges) - 1, -1)
-                             for v in self.views])
+        if self.keep_counts:
+            counts = np.stack([self.ts.polarity_count_stack(v, edges).reshape(len(edges) - 1, -1, 2)
+                               for v in self.views])
+            small = counts.max(initial=0) <= np.iinfo(np.int16).max
+            self._counts = counts.astype(np.int16 if small else np.int32)
+            c_pos, c_neg = self.ts.thresholds
+            self._dl = (c_pos * counts[..., 0] - c_neg * counts[..., 1]).astype(np.float32)
+        else:
+            self._dl = np.stack([self.ts.log_change_stack(v, edges).reshape(len(edges) - 1, -1)
+                                 for v in self.views])
         self._edges, self._n, self._pix = edges, int(n), {}
 
     @property
@@ -192,7 +205,9 @@ class RaySampler:
         tn = self.ts.normalized_time(self._edges[k:k + 2])
         return RayBatch(origins=self.origins[vi_t, pix_t], dirs=self.dirs[vi_t, pix_t], dl=dl,
                         on_event=torch.as_tensor(on_event), t0=float(tn[0]), t1=float(tn[1]),
-                        window=k, n_windows=self._n, views=vi, pixels=pix)
+                        window=k, n_windows=self._n, views=vi, pixels=pix,
+                        counts=None if self._counts is None
+                        else torch.as_tensor(self._counts[vi, k, pix].astype(np.int32)))
 
 
 @dataclass

@@ -23,6 +23,7 @@ metrics.jsonl: one JSON object per ``eval_every`` iterations and at the end:
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import random
@@ -40,6 +41,7 @@ from .checkpoint import (CheckpointError, global_rng_states, load_checkpoint, sa
 from .config import TrainConfig, resolve_config
 from .losses import bin_loss, mse_loss, no_event_hinge
 from .sampler import FrameSampler, RaySampler, default_box
+from .thresholds import LearnedThresholds
 
 DEFAULT_ITERS = 2000
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -97,9 +99,16 @@ class Trainer:
             default_box(train_set, cfg.box_fraction)
         self.field = make_field(cfg.backbone, **cfg.field)
         self.params = [p for p in self.field.parameters() if p.requires_grad]
-        self.opt = torch.optim.Adam(self.params, lr=cfg.lr)
-        self.gen = torch.Generator().manual_seed(cfg.seed + 1)
+        groups = [{"params": self.params, "lr_scale": 1.0}]
         self.c_pos, self.c_neg = (float(c) for c in train_set.thresholds)
+        self.thresholds = None
+        if cfg.learn_thresholds:
+            self.thresholds = LearnedThresholds(self.c_pos, self.c_neg)
+            groups.append({"params": list(self.thresholds.parameters()),
+                           "lr_scale": cfg.threshold_lr / cfg.lr})
+            self.params = self.params + list(self.thresholds.parameters())
+        self.opt = torch.optim.Adam(groups, lr=cfg.lr)
+        self.gen = torch.Generator().manual_seed(cfg.seed + 1)
         self.occupancy = (OccupancyGrid(cfg.occupancy_resolution) if cfg.occupancy_resolution
                           else None)
         self.dynamic = (DynamicRegion.from_event_footprint(
@@ -108,7 +117,8 @@ class Trainer:
             misses=cfg.dynamic_misses)
             if cfg.dynamic_region and cfg.supervision == "events" else None)
         self.sampler = RaySampler(train_set, event_ray_fraction=cfg.event_ray_fraction,
-                                  seed=cfg.seed, dynamic=self.dynamic, box=self.box)
+                                  seed=cfg.seed, dynamic=self.dynamic, box=self.box,
+                                  keep_counts=cfg.learn_thresholds)
         self.frame_sampler = (FrameSampler(train_set, seed=cfg.seed)
                               if cfg.supervision == "frames" else None)
         self.iteration = 0
@@ -158,19 +168,27 @@ class Trainer:
             loss = ((r["grey"] - batch.grey) ** 2).mean()
             reg = plane_regularisers(self.field, cfg)
             return loss if reg is None else loss + reg
-        r0, r1 = render_rays(self.field, batch.origins, batch.dirs, [batch.t0, batch.t1],
-                             self.box, cfg.n_samples, near=cfg.near, far=cfg.far,
-                             background=cfg.background, perturb=cfg.perturb, generator=self.gen,
-                             occupancy=self.occupancy, dynamic=self.dynamic,
-                             changes_only=self.dynamic is not None)
-        dl_hat = torch.log(r1["grey"] + cfg.log_eps) - torch.log(r0["grey"] + cfg.log_eps)
-        if cfg.loss == "mse":
-            loss = mse_loss(dl_hat, batch.dl, cfg.mse_pred_scale, cfg.mse_target_scale)
+        render = functools.partial(
+            render_rays, self.field, batch.origins, batch.dirs, box=self.box,
+            n_samples=cfg.n_samples, near=cfg.near, far=cfg.far, background=cfg.background,
+            perturb=cfg.perturb, generator=self.gen, occupancy=self.occupancy,
+            dynamic=self.dynamic, changes_only=self.dynamic is not None)
+        if cfg.sample_reuse:
+            r0, r1 = render([batch.t0, batch.t1])
         else:
-            loss = bin_loss(dl_hat, batch.dl, self.c_pos, self.c_neg, paper=cfg.loss == "bin_paper")
+            r0, r1 = render(batch.t0), render(batch.t1)
+        dl_hat = torch.log(r1["grey"] + cfg.log_eps) - torch.log(r0["grey"] + cfg.log_eps)
+        c_pos, c_neg, dl = self.c_pos, self.c_neg, batch.dl
+        if self.thresholds is not None:
+            c_pos, c_neg = self.thresholds()
+            dl = self.thresholds.log_change(batch.counts)
+        if cfg.loss == "mse":
+            loss = mse_loss(dl_hat, dl, cfg.mse_pred_scale, cfg.mse_target_scale)
+        else:
+            loss = bin_loss(dl_hat, dl, c_pos, c_neg, paper=cfg.loss == "bin_paper")
         if cfg.no_event_weight:
-            loss = loss + cfg.no_event_weight * no_event_hinge(dl_hat, batch.dl, self.c_pos,
-                                                                self.c_neg, ~batch.on_event)
+            loss = loss + cfg.no_event_weight * no_event_hinge(dl_hat, dl, c_pos, c_neg,
+                                                                ~batch.on_event)
         reg = plane_regularisers(self.field, cfg)
         if reg is not None:
             loss = loss + reg
@@ -183,7 +201,7 @@ class Trainer:
         self.sampler.set_windows(n)
         lr = self.lr()
         for g in self.opt.param_groups:
-            g["lr"] = lr
+            g["lr"] = lr * g["lr_scale"]
         crop = cfg.crop_fraction if self.iteration < cfg.crop_warmup_iters else None
         if self.frame_sampler is not None:
             batch = self.frame_sampler.sample(cfg.rays)
@@ -238,6 +256,8 @@ class Trainer:
                                       "dynamic": None if self.dynamic is None
                                       else self.dynamic.mask.clone(),
                                       "train_s": self.train_s, "elapsed_s": self.elapsed_s,
+                                      "thresholds": None if self.thresholds is None
+                                      else self.thresholds.state_dict(),
                                       "skipped": self.skipped, "iters": self.iters,
                                       "minutes": self.minutes})
 
@@ -263,6 +283,8 @@ class Trainer:
         self.skipped = int(ex.get("skipped", 0))
         if self.occupancy is not None and ex.get("occupied") is not None:
             self.occupancy.occupied = ex["occupied"].clone()
+        if self.thresholds is not None:
+            self.thresholds.load_state_dict(ex["thresholds"])
         if ex.get("dynamic") is not None:
             self.dynamic = DynamicRegion(ex["dynamic"].clone())
         rng = data["rng"]
@@ -291,6 +313,8 @@ class Trainer:
                 "elapsed_s": round(self.elapsed_s, 6),
                 "loss": float(np.mean(self._acc)) if self._acc else None,
                 "lr": self.lr(), "windows": self.n_windows(), "skipped": self.skipped}
+        if self.thresholds is not None:
+            line["c_pos"], line["c_neg"] = self.thresholds.values()
         self._acc = []
         if self.eval_fn is not None:
             ctx = {"train_set": self.ts, "box": self.box, "n_samples": self.cfg.n_samples,
