@@ -21,7 +21,8 @@ setup(
     ],
     python_requires=">=3.10",
     # Versions: torch is pinned exactly because any looser spec pulls GBs of CUDA wheels;
-    # cyclonedds' private raw-CDR writer is used later, so it is pinned when it arrives.
+    # cyclonedds is pinned exactly because evdnerf_ros.ros.transport's raw-CDR fast path
+    # calls the binding's private low-level writer/reader (tests/test_ros_transport.py checks it).
     install_requires=[
         "numpy>=1.24",
         "pyyaml>=6",
@@ -33,13 +34,15 @@ setup(
         "torch==2.13.0",
         "numba==0.68.1",  # EVT 2.0 / 3.0 decode/encode hot loops compiled to C speed
         "pyserial>=3.5",  # the servo-rig firmware's serial link (rig.servo)
+        "cyclonedds==11.0.1",  # ROS 2-compatible DDS transport; private raw-CDR API, see above
     ],
     extras_require={
         "test": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "mcap>=1.1",
                  "mcap-ros2-support>=0.5", "expelliarmus==1.1.12",
                  "evlib==0.13.2"],  # peer codec and peer simulator in tests/benchmarks
     },
-    entry_points={"console_scripts": ["evdnerf = evdnerf_ros.cli:main"],
+    entry_points={"console_scripts": ["evdnerf = evdnerf_ros.cli:main",
+                                      "event_publisher = evdnerf_ros.nodes.event_publisher:main"],
                   # plugin commands of the `evdnerf` CLI (evdnerf_ros never imports rig)
                   "evdnerf.commands": ["rig = rig.cli:register"]},
     zip_safe=True,

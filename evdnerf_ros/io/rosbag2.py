@@ -470,6 +470,37 @@ class BagWriter(_EventBagWriter):
         self.write(topic, "sensor_msgs/msg/CameraInfo", msg, stamp_ns)
 
 
+class EventMessageEncoder(_EventBagWriter):
+    """Packetise and serialise events exactly as :meth:`BagWriter.write_events` does, without a
+    bag: every message goes to ``sink(topic, msgtype, data, stamp_ns)`` (a live publisher).
+    Calls on a topic continue one stream (evt3 time_base, encoder state and seq carry over)."""
+
+    def __init__(self, sink):
+        self._sink = sink
+        self.path = Path("<live>")
+        self._out = None
+        self._writer = None
+        self._conns = {}
+        self._topics = {}
+        self._failed = None
+        self._state = "open"
+
+    def _make_writer(self, tmp_path):  # pragma: no cover - never opened
+        raise NotImplementedError
+
+    def _add_connection(self, topic, msgtype):
+        return (topic, msgtype)
+
+    def _write_raw(self, conn, t_ns, data):
+        self._sink(conn[0], conn[1], data, t_ns)
+
+    def close(self):
+        self._state = "closed"
+
+    def abort(self):
+        self._state = "aborted"
+
+
 # =========================================================================== reading
 
 

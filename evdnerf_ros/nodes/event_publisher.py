@@ -1,0 +1,315 @@
+"""The event publisher node: the events a camera on a robot would see in a synthetic scene
+or a trained field, published as ROS 2 topics over DDS and/or recorded into a rosbag2.
+
+Per chunk of ``chunk`` seconds of trajectory time the node renders the scene along the
+camera's pose (robot pose interpolated from the trajectory, times the extrinsics),
+drives ONE stateful :class:`~evdnerf_ros.sim.generator.EventGenerator` through it with
+the adaptive time sampler (or at a fixed rate), packetises the events exactly as the
+bag writer does (EventPacket evt3 by default; evt2, mono or dvs EventArray) and publishes
+them on ``~/events`` with ``~/camera_info``. Stamps are trajectory times (int64 ns).
+With ``realtime_factor`` > 0 each chunk is published when the wall clock reaches its end
+(divided by the factor); 0 runs as fast as possible. The node logs its real-time factor
+(trajectory seconds per wall second).
+
+Executable: ``event_publisher --ros-args -p scene:=fork -p trajectory:=traj.yaml ...``;
+``evdnerf publish`` runs the same node without DDS (bag only) unless ``--dds``.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from ..errors import EvdnerfError, InputError
+from ..ros.node import Node
+from ..ros.parameters import ParameterSpec as P
+
+NS = 1_000_000_000
+
+PARAMETERS = [
+    P("scene", "fork", "synthetic scene: a preset name (fork, jet-down, ...) or a scene YAML; unused with run_dir"),
+    P("run_dir", "", "trained run folder (checkpoint.pt from `evdnerf train`); empty: render `scene`", read_only=True),
+    P("field_duration", 0.0, "seconds of scene time the field's normalised time 0..1 spans (0: the "
+      "trajectory's span)", min=0.0),
+    P("scene_time_offset", 0.0, "scene time (s) at the trajectory's first pose"),
+    P("trajectory", "", "robot poses: a bag (nav_msgs/Odometry, PoseStamped or /tf), .yaml or .csv; empty: a "
+      "static camera at the scene's first ring view for `duration` seconds"),
+    P("trajectory_topic", "", "pose topic inside a trajectory bag (empty: the only pose topic)"),
+    P("trajectory_child_frame", "base_link", "robot frame (child_frame_id) when reading /tf"),
+    P("trajectory_max_gap", 0.5, "largest gap (s) between poses that is interpolated", min=1e-6),
+    P("duration", 0.0, "seconds to publish (0: the whole trajectory, or the scene's duration)", min=0.0),
+    P("camera.xyz", [0.0, 0.0, 0.0], "camera position in the robot frame (m)"),
+    P("camera.rpy_deg", [0.0, 0.0, 0.0], "camera orientation in the robot frame: roll, pitch, yaw (deg, fixed "
+      "axes x, y, z); the camera frame is OpenCV (x right, y down, z forward)"),
+    P("camera.quat", [], "camera orientation as a quaternion (x, y, z, w); overrides rpy_deg", type=list),
+    P("camera.matrix", [], "T_robot_cam as 16 row-major numbers; overrides xyz/rpy/quat", type=list),
+    P("camera.width", 0, "image width in pixels (0: the scene's)", min=0, max=65535),
+    P("camera.height", 0, "image height in pixels (0: the scene's)", min=0, max=65535),
+    P("camera.fov_deg", 0.0, "horizontal field of view (0: the scene's; 40 for a trained run)", min=0.0, max=179.0),
+    P("camera.K", [], "pinhole intrinsics [fx, fy, cx, cy] in pixels; overrides fov_deg", type=list),
+    P("supersample", 1, "s x s rays per pixel of the synthetic renderer", min=1, max=8),
+    P("c_pos", 0.2, "ON contrast threshold (log units)", min=1e-4),
+    P("c_neg", 0.2, "OFF contrast threshold (log units)", min=1e-4),
+    P("threshold_sigma", 0.0, "per-pixel threshold mismatch (std, log units)", min=0.0),
+    P("refractory_ns", 0, "refractory period (ns)", min=0),
+    P("shot_noise_hz", 0.0, "shot-noise events per pixel per second", min=0.0),
+    P("leak_rate_hz", 0.0, "leak events per pixel per second", min=0.0),
+    P("seed", 0, "seed of every random draw (noise, mismatch)", min=0),
+    P("adaptive", True, "adaptive time sampling (skip steps where nothing moves); false: fixed render_rate_hz"),
+    P("tolerance_c", 0.1, "adaptive sampling: allowed midpoint deviation from linear, in units of C", min=1e-6),
+    P("min_step_ns", 100_000, "adaptive sampling: finest step (ns)", min=1),
+    P("max_step_ns", 10_000_000, "adaptive sampling: coarsest step (ns)", min=1),
+    P("render_rate_hz", 1000.0, "fixed sampling rate when adaptive is false", min=1e-3),
+    P("leave_out", True, "render only pixels whose rays can hit something (scene primitives' screen boxes / the "
+      "field's occupancy grid)"),
+    P("encoding", "evt3", "event message: evt3, evt2 or mono EventPacket, or array (dvs_msgs/EventArray)",
+      choices=("evt3", "evt2", "mono", "array")),
+    P("packet_ns", 1_000_000, "longest time span of one event message (ns)", min=1),
+    P("chunk", 0.01, "seconds of trajectory rendered and published per step", min=1e-6),
+    P("realtime_factor", 1.0, "1: real time; 2: twice as fast; 0: as fast as possible", min=0.0),
+    P("frame_id", "event_camera", "header.frame_id of events and camera info"),
+    P("qos", "default", "QoS profile of the published topics (default = reliable, keep-last 10; sensor_data = "
+      "best effort)", choices=("default", "sensor_data", "transient_local")),
+    P("camera_info_period", 1.0, "seconds between CameraInfo messages", min=1e-3),
+    P("bag", "", "also record into this rosbag2 (must not exist); empty: no bag", read_only=True),
+    P("bag_storage", "mcap", "rosbag2 storage of the bag", choices=("mcap", "sqlite3"), read_only=True),
+    P("wait_for_subscribers", 0, "wait until this many subscribers match ~/events before starting", min=0),
+    P("wait_timeout", 10.0, "seconds to wait for subscribers", min=0.0),
+]
+
+
+@dataclass
+class PublishReport:
+    messages: int = 0
+    events: int = 0
+    bytes: int = 0
+    sim_seconds: float = 0.0
+    wall_seconds: float = 0.0
+    render_seconds: float = 0.0
+    renders: int = 0
+    frames_fed: int = 0
+    rays_total: int = 0
+    rays_rendered: int = 0
+    interrupted: bool = False
+    rtf: float = 0.0
+    topics: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+class EventPublisher(Node):
+    NAME = "event_publisher"
+    PARAMETERS = PARAMETERS
+
+    def __init__(self, argv=(), **kwargs):
+        super().__init__(argv, **kwargs)
+        p = self.params
+        self.camera = self._camera()
+        self.source = self._source()
+        self.t0, self.t1, self.track = self._trajectory()
+        self.T_robot_cam = self._extrinsics()
+        from ..sim.generator import EventGenerator
+
+        self.generator = EventGenerator(
+            self.camera.width, self.camera.height, c_pos=p["c_pos"], c_neg=p["c_neg"],
+            threshold_sigma=p["threshold_sigma"], refractory_ns=p["refractory_ns"],
+            shot_noise_rate_hz=p["shot_noise_hz"], leak_rate_hz=p["leak_rate_hz"], seed=p["seed"])
+        if p["encoding"] in ("evt3", "evt2") and max(self.camera.width, self.camera.height) > 2048:
+            raise InputError(f"encoding {p['encoding']} carries at most 2048x2048 pixels; use encoding mono or array")
+        if p["min_step_ns"] > p["max_step_ns"]:
+            raise InputError(f"min_step_ns {p['min_step_ns']} is larger than max_step_ns {p['max_step_ns']}")
+        self.events_pub = self.create_publisher("~/events", "dvs_msgs/msg/EventArray" if p["encoding"] == "array"
+                                                else "event_camera_msgs/msg/EventPacket", p["qos"])
+        self.info_pub = self.create_publisher("~/camera_info", "sensor_msgs/msg/CameraInfo", p["qos"])
+        if p["bag"]:
+            self.record_to(p["bag"], storage=p["bag_storage"])
+        self.report = PublishReport()
+
+    # ----- inputs
+    def _camera(self):
+        from ..sim.camera import PinholeCamera
+
+        p = self.params
+        base = None
+        if not p["run_dir"]:
+            from ..sim.scene import load_scene
+
+            self._scene = load_scene(p["scene"], check_cameras=False)
+            base = self._scene.camera
+        w = p["camera.width"] or (base.width if base else 0)
+        h = p["camera.height"] or (base.height if base else 0)
+        if not w or not h:
+            raise InputError("camera.width and camera.height are needed with a trained run (e.g. 346 x 260)")
+        K = p["camera.K"]
+        if K:
+            if len(K) != 4 or not all(isinstance(v, (int, float)) for v in K):
+                raise InputError(f"parameter 'camera.K': expected [fx, fy, cx, cy], got {K}")
+            return PinholeCamera(w, h, float(K[0]), float(K[1]), float(K[2]), float(K[3]))
+        fov = p["camera.fov_deg"] or (base.fov_x_deg if base else 40.0)
+        return PinholeCamera.from_fov(w, h, fov)
+
+    def _source(self):
+        from .sources import FieldSource, SceneSource
+
+        p = self.params
+        if p["run_dir"]:
+            dur = int(round(p["field_duration"] * NS)) if p["field_duration"] else 0
+            self._field_args = (p["run_dir"], dur)
+            return None   # built once the trajectory span is known
+        return SceneSource(self._scene, self.camera, supersample=p["supersample"], leave_out=p["leave_out"])
+
+    def _trajectory(self):
+        from ..io.poses import load_poses
+        from ..sim.pose_track import PoseTrack
+
+        p = self.params
+        dur = int(round(p["duration"] * NS))
+        if p["trajectory"]:
+            t, T = load_poses(p["trajectory"], topic=p["trajectory_topic"] or None,
+                              child_frame=p["trajectory_child_frame"])
+            track = PoseTrack(t, T, max_gap_ns=int(round(p["trajectory_max_gap"] * NS)), source=p["trajectory"])
+            t0, t1 = track.span_ns
+        else:
+            if self.source is None:
+                raise InputError("a trained run needs a trajectory (bag, YAML or CSV of poses)")
+            T = self.source.default_pose()
+            t0, t1 = 0, dur or self.source.default_duration_ns()
+            track = PoseTrack([t0, max(t1, t0 + 1)], [T, T], source="static camera")
+            self.T_static = T
+        if dur:
+            t1 = min(t1, t0 + dur)
+        if t1 <= t0:
+            raise InputError(f"nothing to publish: the time span [{t0}, {t1}] ns is empty")
+        if self.source is None:
+            run_dir, fdur = self._field_args
+            from .sources import FieldSource
+
+            self.source = FieldSource(run_dir, self.camera, duration_ns=fdur or (t1 - t0),
+                                      leave_out=self.params["leave_out"])
+        return t0, t1, track
+
+    def _extrinsics(self):
+        from ..io.poses import extrinsics, matrix_extrinsics
+
+        p = self.params
+        if not p["trajectory"]:
+            return np.eye(4)        # the static default pose is the camera's own
+        if p["camera.matrix"]:
+            return matrix_extrinsics(p["camera.matrix"], what="parameter 'camera.matrix' (T_robot_cam)")
+        return extrinsics(p["camera.xyz"], p["camera.rpy_deg"], p["camera.quat"] or None,
+                          what="parameters 'camera.xyz' / 'camera.rpy_deg' / 'camera.quat'")
+
+    def camera_pose(self, t_ns: int) -> np.ndarray:
+        return self.track(t_ns) @ self.T_robot_cam
+
+    def render(self, t_ns: int) -> np.ndarray:
+        t_scene = int(t_ns) - self.t0 + int(round(self.params["scene_time_offset"] * NS))
+        return self.source(self.camera_pose(t_ns), t_scene)
+
+    # ----- run
+    def _camera_info(self, stamp_ns: int) -> None:
+        from ..io.messages import camera_info
+        from ..io.typestore import ros2_typestore
+
+        msg = camera_info(self.camera.width, self.camera.height, self.camera.K, frame_id=self.params["frame_id"],
+                          stamp_ns=stamp_ns)
+        self.info_pub.publish_raw(ros2_typestore().serialize_cdr(msg, self.info_pub.msgtype), stamp_ns)
+
+    def run(self) -> PublishReport:
+        from ..events.codecs import quantize_to_us
+        from ..io.rosbag2 import EventMessageEncoder
+        from ..sim.sampling import simulate_renderer
+
+        p = self.params
+        rep = self.report
+        if p["wait_for_subscribers"] and self.dds is not None:
+            self.logger.info(f"waiting for {p['wait_for_subscribers']} subscriber(s) on {self.events_pub.topic}")
+            if not self.events_pub.dds.wait_for_subscribers(p["wait_for_subscribers"], p["wait_timeout"]):
+                self.logger.warn(f"{self.events_pub.topic}: only {self.events_pub.subscribers()} subscriber(s) after "
+                                 f"{p['wait_timeout']} s; publishing anyway")
+
+        def sink(topic, msgtype, data, stamp):
+            self.events_pub.publish_raw(data, stamp)
+
+        encoder = EventMessageEncoder(sink)
+        chunk = max(1, int(round(p["chunk"] * NS)))
+        info_every = int(round(p["camera_info_period"] * NS))
+        factor = p["realtime_factor"]
+        evt = p["encoding"] in ("evt3", "evt2")
+        self.logger.info(f"publishing {(self.t1 - self.t0) / NS:.3f} s of events from the {self.source.kind} on "
+                         f"{self.events_pub.topic} ({p['encoding']}, {self.camera.width}x{self.camera.height}"
+                         f"{', DDS domain %d' % self.dds.domain_id if self.dds is not None else ', no DDS'}"
+                         f"{', bag ' + str(self.bag.path) if self.bag is not None else ''})")
+        wall0 = time.perf_counter()
+        last_report = wall0
+        next_info = self.t0
+        t = self.t0
+        while t < self.t1 and self.ok():
+            tb = min(t + chunk, self.t1)
+            if t >= next_info:
+                self._camera_info(t)
+                next_info = t + info_every
+            events, st = simulate_renderer(
+                self.render, t, tb, self.generator, mode="adaptive" if p["adaptive"] else "fixed",
+                rate_hz=p["render_rate_hz"], tolerance_c=p["tolerance_c"],
+                min_step_ns=p["min_step_ns"], max_step_ns=min(p["max_step_ns"], tb - t))
+            if evt and events.size:
+                events = quantize_to_us(events, time_base_ns=self.t0)
+            rep.render_seconds += st.render_seconds
+            rep.renders += st.renders
+            rep.frames_fed += st.frames_fed
+            if factor > 0:
+                self.sleep(wall0 + (tb - self.t0) / NS / factor - time.perf_counter())
+            rep.messages += encoder.write_events(self.events_pub.topic, events, width=self.camera.width,
+                                                 height=self.camera.height, encoding=p["encoding"],
+                                                 packet_ns=p["packet_ns"], frame_id=p["frame_id"])
+            rep.events += int(events.size)
+            t = tb
+            rep.sim_seconds = (t - self.t0) / NS
+            now = time.perf_counter()
+            if now - last_report > 2.0:
+                self.check_qos()
+                last_report = now
+                self.logger.info(f"t = {rep.sim_seconds:.3f} s, {rep.events} events, real-time factor "
+                                 f"{rep.sim_seconds / (now - wall0):.3g}")
+        rep.wall_seconds = time.perf_counter() - wall0
+        rep.interrupted = t < self.t1
+        rep.rtf = rep.sim_seconds / rep.wall_seconds if rep.wall_seconds > 0 else float("inf")
+        rep.bytes = self.events_pub.bytes
+        rep.rays_total = self.source.rays_total
+        rep.rays_rendered = self.source.rays_rendered
+        rep.topics = {pub.topic: pub.messages for pub in self.publishers.values()}
+        self.check_qos()
+        self.logger.info(f"{'stopped' if rep.interrupted else 'done'}: {rep.sim_seconds:.3f} s of events in "
+                         f"{rep.wall_seconds:.2f} s wall (real-time factor {rep.rtf:.3g}), {rep.events} events in "
+                         f"{rep.messages} messages, {rep.renders} renders")
+        return rep
+
+
+def run_node(argv=(), **kwargs) -> PublishReport:
+    """Build, run and shut the node down (bag closed even on SIGINT / SIGTERM)."""
+    node = EventPublisher(argv, **kwargs)
+    node.install_signal_handlers()
+    with node:
+        return node.run()
+
+
+def main(argv=None) -> int:
+    """Console script ``event_publisher`` (what ``ros2 run rig event_publisher`` starts)."""
+    argv = sys.argv[1:] if argv is None else argv
+    try:
+        run_node(argv)
+    except EvdnerfError as exc:
+        print(f"event_publisher: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

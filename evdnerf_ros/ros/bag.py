@@ -1,0 +1,33 @@
+"""Record chosen topics of a node to rosbag2 (MCAP by default) with the toolkit's BagWriter.
+
+Messages are recorded as the exact bytes the transport sends (CDR), stamped with their
+header time. The bag is written atomically: it appears under its name only when the sink
+closes cleanly (normal end, SIGINT, SIGTERM); an error discards it.
+"""
+
+from __future__ import annotations
+
+from ..io.rosbag2 import BagWriter
+
+
+class BagSink:
+    def __init__(self, path, topics=None, *, storage: str = "mcap"):
+        """`topics`: resolved topic names to record (None: every topic the node publishes)."""
+        self.topics = None if topics is None else set(topics)
+        self.writer = BagWriter(path, storage=storage).open()
+        self.path = self.writer.path
+        self.messages = 0
+
+    def wants(self, topic: str) -> bool:
+        return self.topics is None or topic in self.topics
+
+    def record(self, topic: str, msgtype: str, data, t_ns: int) -> None:
+        if self.wants(topic):
+            self.writer.write_raw(topic, msgtype, data, t_ns)
+            self.messages += 1
+
+    def close(self) -> None:
+        self.writer.close()
+
+    def abort(self) -> None:
+        self.writer.abort()

@@ -1,0 +1,176 @@
+"""Typed, declared node parameters and ``ros__parameters`` YAML files.
+
+A node declares every parameter (:class:`ParameterSpec`: name, default, description, and
+optionally read-only, a numeric range or a set of choices). Values come, in increasing
+precedence, from the defaults, each ``--params-file`` in order, then ``-p`` overrides.
+A parameter file maps node names to ``{ros__parameters: {...}}``; the keys that apply to
+node ``/ns/name`` are ``/**``, ``**``, ``/**/name``, ``name``, ``/name`` (when ns is ``/``),
+``ns/name`` and ``/ns/name``, applied in the file's order. Nested mappings are flattened
+with ``.`` (``camera: {width: 64}`` sets ``camera.width``). Values set for a parameter
+this node does not declare are reported (a typo would otherwise go unnoticed), not used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ..errors import InputError
+
+_TYPES = (bool, int, float, str, list)
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    name: str
+    default: Any
+    description: str
+    type: type | None = None         # default: type(default); list means list of numbers/strings
+    read_only: bool = False          # only settable at start-up (files, -p), as ROS read_only
+    min: float | None = None
+    max: float | None = None
+    choices: tuple | None = None
+
+    @property
+    def kind(self) -> type:
+        return self.type or type(self.default)
+
+    def type_name(self) -> str:
+        return {bool: "bool", int: "integer", float: "double", str: "string", list: "array"}[self.kind]
+
+    def coerce(self, value, source: str):
+        kind = self.kind
+        what = f"{source}: parameter {self.name!r}"
+        ok = True
+        if kind is bool:
+            ok = isinstance(value, bool)
+        elif kind is int:
+            ok = isinstance(value, int) and not isinstance(value, bool)
+        elif kind is float:
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+            value = float(value) if ok else value
+        elif kind is str:
+            ok = isinstance(value, str)
+        elif kind is list:
+            ok = isinstance(value, (list, tuple))
+            value = list(value) if ok else value
+        if not ok:
+            raise InputError(f"{what} is a {self.type_name()}, got {type(value).__name__} {value!r}; "
+                             f"e.g. {self.name}:={_example(self.default)}")
+        if self.choices is not None and value not in self.choices:
+            raise InputError(f"{what}: {value!r} is not one of {list(self.choices)}")
+        if (self.min is not None and value < self.min) or (self.max is not None and value > self.max):
+            raise InputError(f"{what}: {value!r} is outside its range [{self.min}, {self.max}]")
+        return value
+
+
+def _example(default) -> str:
+    return yaml.safe_dump(default, default_flow_style=True).strip().removesuffix("...").strip()
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def _applies(key: str, node: str, namespace: str) -> bool:
+    key = str(key)
+    ns = namespace.strip("/")
+    full = f"{ns}/{node}" if ns else node
+    return key in ("/**", "**", f"/**/{node}", f"**/{node}", full, "/" + full) or (not ns and key == node)
+
+
+def load_params_file(path, node: str, namespace: str = "/") -> dict[str, Any]:
+    """The flattened ``ros__parameters`` a file gives node `node` in `namespace`."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the parameter file ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise InputError(f"{path}: not valid YAML ({exc})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: a parameter file maps node names to {{ros__parameters: ...}}")
+    out: dict[str, Any] = {}
+    for key, body in data.items():
+        if not isinstance(body, dict) or "ros__parameters" not in body:
+            raise InputError(f"{path}: entry {key!r} has no 'ros__parameters' mapping; write "
+                             f"'{key}:\\n  ros__parameters:\\n    name: value'")
+        params = body["ros__parameters"]
+        if not isinstance(params, dict):
+            raise InputError(f"{path}: {key}.ros__parameters must be a mapping")
+        if _applies(key, node, namespace):
+            out.update(_flatten(params))
+    return out
+
+
+class Parameters:
+    """Declared parameters with their current values (``params["name"]`` or ``params.name``)."""
+
+    def __init__(self, specs):
+        self._specs: dict[str, ParameterSpec] = {}
+        self._values: dict[str, Any] = {}
+        self._sources: dict[str, str] = {}
+        for s in specs:
+            self.declare(s)
+
+    def declare(self, spec: ParameterSpec) -> None:
+        if spec.name in self._specs:
+            raise InputError(f"parameter {spec.name!r} declared twice")
+        if spec.kind not in _TYPES:
+            raise InputError(f"parameter {spec.name!r}: unsupported type {spec.kind}")
+        self._specs[spec.name] = spec
+        self._values[spec.name] = spec.coerce(spec.default, "default")
+        self._sources[spec.name] = "default"
+
+    def apply(self, values: dict[str, Any], source: str, *, startup: bool = True) -> list[str]:
+        """Set values; returns the names this node does not declare (left unused)."""
+        unknown = []
+        checked = {}
+        for name, value in values.items():
+            spec = self._specs.get(name)
+            if spec is None:
+                unknown.append(name)
+                continue
+            if spec.read_only and not startup:
+                raise InputError(f"{source}: parameter {name!r} is read-only after start-up")
+            checked[name] = spec.coerce(value, source)
+        for name, value in checked.items():     # all or nothing
+            self._values[name] = value
+            self._sources[name] = source
+        return unknown
+
+    def __getitem__(self, name: str):
+        try:
+            return self._values[name]
+        except KeyError:
+            raise InputError(f"parameter {name!r} is not declared") from None
+
+    def __getattr__(self, name: str):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return self[name.replace("__", ".")]
+
+    def specs(self) -> list[ParameterSpec]:
+        return list(self._specs.values())
+
+    def source(self, name: str) -> str:
+        return self._sources[name]
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self._values)
+
+    def to_yaml(self, node: str) -> str:
+        """A ``ros__parameters`` file of the current values (what ``ros2 param dump`` gives)."""
+        return yaml.safe_dump({node: {"ros__parameters": self.as_dict()}}, sort_keys=False)

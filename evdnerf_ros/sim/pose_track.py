@@ -1,0 +1,56 @@
+"""Interpolated robot trajectory from timestamped poses: linear position, slerp rotation.
+
+``PoseTrack(t_ns, T)(t) -> 4x4`` for ``t`` inside the track; a gap longer than
+``max_gap_ns`` between two poses is refused (interpolating across it would invent motion).
+Times are int64 ns; the in-segment fraction is a float from int64 differences.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from .trajectory import matrix_to_quat, quat_to_matrix, slerp
+
+
+class PoseTrack:
+    def __init__(self, t_ns, T, *, max_gap_ns: int | None = None, source: str = "trajectory"):
+        t = np.asarray(t_ns, dtype=np.int64)
+        T = np.asarray(T, dtype=np.float64)
+        if t.ndim != 1 or T.shape != (t.size, 4, 4) or t.size < 2:
+            raise InputError(f"{source}: need >= 2 times and as many 4x4 poses (got {t.shape}, {T.shape})")
+        dt = np.diff(t)
+        if np.any(dt <= 0):
+            i = int(np.flatnonzero(dt <= 0)[0]) + 1
+            raise InputError(f"{source}: pose {i} at t={int(t[i])} ns does not come after pose {i - 1}; "
+                             "times must increase strictly")
+        if max_gap_ns is not None and np.any(dt > max_gap_ns):
+            i = int(np.argmax(dt))
+            raise InputError(f"{source}: gap of {dt[i] / 1e9:.3f} s between pose {i} (t={int(t[i])} ns) and "
+                             f"pose {i + 1}, longer than max_gap {max_gap_ns / 1e9:g} s; interpolating across it "
+                             "would invent motion: fill the gap, split the trajectory, or raise trajectory_max_gap")
+        self.source = source
+        self.t = t
+        self.p = T[:, :3, 3].copy()
+        q = np.array([matrix_to_quat(R) for R in T[:, :3, :3]])
+        for i in range(1, len(q)):               # one hemisphere: slerp takes the short arc
+            if np.dot(q[i], q[i - 1]) < 0:
+                q[i] = -q[i]
+        self.q = q
+
+    @property
+    def span_ns(self) -> tuple[int, int]:
+        return int(self.t[0]), int(self.t[-1])
+
+    def __call__(self, t_ns) -> np.ndarray:
+        t = int(t_ns)
+        if not self.t[0] <= t <= self.t[-1]:
+            raise InputError(f"{self.source}: time {t} ns is outside the trajectory "
+                             f"[{int(self.t[0])}, {int(self.t[-1])}] ns")
+        i = int(np.searchsorted(self.t, t, "right")) - 1
+        i = min(i, self.t.size - 2)
+        u = (t - int(self.t[i])) / float(int(self.t[i + 1]) - int(self.t[i]))
+        T = np.eye(4)
+        T[:3, :3] = quat_to_matrix(slerp(self.q[i], self.q[i + 1], u))
+        T[:3, 3] = self.p[i] + u * (self.p[i + 1] - self.p[i])
+        return T
