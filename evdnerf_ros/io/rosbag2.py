@@ -248,6 +248,11 @@ class _EventBagWriter(abc.ABC):
     def _write_raw(self, conn, t_ns, data):
         self._writer.write(conn, t_ns, data)
 
+    def add_topic(self, topic: str, msgtype: str) -> None:
+        """Declare a topic now (a bag then lists it even if no message follows)."""
+        self._check_open()
+        self._connection(topic, msgtype)
+
     def write_raw(self, topic: str, msgtype: str, data, t_ns: int):
         """Write an already serialised message (CDR for rosbag2, ROS 1 wire format for .bag)."""
         self._check_open()

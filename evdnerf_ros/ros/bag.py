@@ -21,6 +21,11 @@ class BagSink:
     def wants(self, topic: str) -> bool:
         return self.topics is None or topic in self.topics
 
+    def add_topic(self, topic: str, msgtype: str) -> None:
+        """List a recorded topic in the bag from the start (also when nothing is published on it)."""
+        if self.wants(topic):
+            self.writer.add_topic(topic, msgtype)
+
     def record(self, topic: str, msgtype: str, data, t_ns: int) -> None:
         if self.wants(topic):
             self.writer.write_raw(topic, msgtype, data, t_ns)

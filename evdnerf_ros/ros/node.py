@@ -110,6 +110,8 @@ class Node:
 
             dds_pub = DdsPublisher(self._dds, full, msgtype, qos_profile(qos), fast=fast, log=self.logger.log)
         pub = self.publishers[full] = Publisher(self, full, msgtype, dds_pub)
+        if self.bag is not None:
+            self.bag.add_topic(full, msgtype)
         return pub
 
     def create_subscription(self, topic: str, msgtype: str, qos="default", *, depth: int | None = None,
@@ -127,6 +129,8 @@ class Node:
         """Record `topics` (names as given to create_publisher; None: all) into a new rosbag2."""
         resolved = None if topics is None else [self.resolve(t) for t in topics]
         self.bag = BagSink(path, resolved, storage=storage)
+        for pub in self.publishers.values():
+            self.bag.add_topic(pub.topic, pub.msgtype)
         return self.bag
 
     def check_qos(self) -> None:

@@ -1,0 +1,280 @@
+"""The event publisher node without DDS: trajectory inputs and their bad-input errors,
+extrinsics, checkpoints from another version, the event stream against the offline
+generator, leave-out switches, stability cases, and `evdnerf publish`."""
+
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from evdnerf_ros.cli import main
+from evdnerf_ros.errors import InputError
+from evdnerf_ros.io import messages
+from evdnerf_ros.io.poses import extrinsics, load_poses
+from evdnerf_ros.io.rosbag2 import BagWriter, open_bag, read_events
+from evdnerf_ros.nodes.event_publisher import EventPublisher, run_node
+from evdnerf_ros.sim.camera import PinholeCamera, look_at
+from evdnerf_ros.sim.generator import EventGenerator
+from evdnerf_ros.sim.pose_track import PoseTrack
+from evdnerf_ros.sim.render import SceneRenderer
+from evdnerf_ros.sim.scene import load_scene
+
+EVENTS = "/event_publisher/events"
+SMALL = {"camera.width": 24, "camera.height": 24, "realtime_factor": 0.0, "adaptive": False,
+         "render_rate_hz": 1000.0}
+
+
+def publish(tmp_path, name="b", **params):
+    """Run the node bag-only; returns (report, bag path)."""
+    bag = tmp_path / name
+    rep = run_node((), overrides={**SMALL, "bag": str(bag), **params}, dds=False)
+    return rep, bag
+
+
+def offline_events(w, h, t_end_ns, offset_ns, rate_hz=1000, **gen):
+    """The reference: frames of the static default view at a fixed rate through one EventGenerator."""
+    scene = load_scene("fork", check_cameras=False)
+    cam = PinholeCamera.from_fov(w, h, scene.camera.fov_x_deg)
+    render = SceneRenderer(scene, cam, 1)
+    T = scene.camera_poses("train")[0]
+    n = round(t_end_ns * rate_hz / 1e9)
+    times = np.arange(n + 1, dtype=np.int64) * (t_end_ns // n)
+    frames = [render(T, int(t) + offset_ns) for t in times]
+    return EventGenerator(w, h, **gen).generate(frames, times)
+
+
+# ----------------------------------------------------------------------------- trajectories
+
+def _circle(n=21, span_ns=1_000_000_000, t0=0):
+    t = t0 + np.arange(n, dtype=np.int64) * (span_ns // (n - 1))
+    poses = []
+    for k in range(n):
+        a = 2 * math.pi * k / (n - 1) * 0.25
+        poses.append({"t_ns": int(t[k]), "position": [math.cos(a), math.sin(a), 0.5],
+                      "orientation": [0.0, 0.0, math.sin(a / 2), math.cos(a / 2)]})
+    return t, poses
+
+
+def test_yaml_csv_and_bag_trajectories_agree(tmp_path):
+    t, poses = _circle()
+    y = tmp_path / "traj.yaml"
+    y.write_text(yaml.safe_dump({"frame_id": "world", "poses": poses}))
+    c = tmp_path / "traj.csv"
+    c.write_text("t,x,y,z,qx,qy,qz,qw\n" + "".join(
+        f"{p['t_ns'] / 1e9!r},{','.join(map(repr, p['position'] + p['orientation']))}\n" for p in poses))
+    T_ref = load_poses(y)[1]
+    for kind in ("pose", "odom", "tf"):
+        b = tmp_path / f"{kind}_bag"
+        with BagWriter(b) as w:
+            for p, T in zip(poses, T_ref):
+                stamp = p["t_ns"] + 5
+                if kind == "pose":
+                    w.write("/robot/pose", "geometry_msgs/msg/PoseStamped", messages.pose_stamped(T, stamp), stamp)
+                    continue
+                types = w.typestore.types
+                ps = messages.pose_stamped(T, stamp)
+                if kind == "odom":
+                    cov = types["geometry_msgs/msg/PoseWithCovariance"](pose=ps.pose, covariance=np.zeros(36))
+                    tw = types["geometry_msgs/msg/TwistWithCovariance"](
+                        twist=types["geometry_msgs/msg/Twist"](linear=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                                                               angular=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)),
+                        covariance=np.zeros(36))
+                    w.write("/odom", "nav_msgs/msg/Odometry", types["nav_msgs/msg/Odometry"](
+                        header=ps.header, child_frame_id="base_link", pose=cov, twist=tw), stamp)
+                else:
+                    o, q = ps.pose.position, ps.pose.orientation
+                    tf = types["geometry_msgs/msg/TransformStamped"](
+                        header=ps.header, child_frame_id="base_link", transform=types["geometry_msgs/msg/Transform"](
+                            translation=types["geometry_msgs/msg/Vector3"](x=o.x, y=o.y, z=o.z), rotation=q))
+                    other = types["geometry_msgs/msg/TransformStamped"](
+                        header=ps.header, child_frame_id="camera_mount", transform=tf.transform)
+                    w.write("/tf", "tf2_msgs/msg/TFMessage", types["tf2_msgs/msg/TFMessage"](transforms=[other, tf]),
+                            stamp)
+        tb, Tb = load_poses(b)
+        np.testing.assert_array_equal(tb, t + 5)
+        np.testing.assert_allclose(Tb, T_ref, atol=1e-12)
+    tc, Tc = load_poses(c)
+    np.testing.assert_array_equal(tc, t)
+    np.testing.assert_allclose(Tc, T_ref, atol=1e-12)
+
+
+def test_pose_track_slerps_and_interpolates_linearly():
+    T0, T1 = np.eye(4), np.eye(4)
+    T1[:3, :3] = messages.quaternion_to_rotation([0, 0, math.sin(math.pi / 4), math.cos(math.pi / 4)])  # 90 deg yaw
+    T1[:3, 3] = [2.0, 0.0, 0.0]
+    track = PoseTrack([10, 110], [T0, T1])
+    mid = track(60)
+    np.testing.assert_allclose(mid[:3, 3], [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(mid[:3, :3], messages.quaternion_to_rotation(
+        [0, 0, math.sin(math.pi / 8), math.cos(math.pi / 8)]), atol=1e-12)
+    np.testing.assert_allclose(track(110), T1, atol=1e-12)
+    with pytest.raises(InputError, match="outside the trajectory"):
+        track(111)
+
+
+@pytest.mark.parametrize("mutate,match", [
+    (lambda p: p[3].update(t_ns=p[2]["t_ns"]), "does not come after pose 2"),
+    (lambda p: p[5].update(t_ns=p[1]["t_ns"] - 1), "does not come after"),
+    (lambda p: p[4].update(position=[0.0, float("nan"), 0.0]), "pose 4 has NaN"),
+    (lambda p: p[2].update(orientation=[0.0, 0.0, 0.0, 2.0]), "norm 2"),
+    (lambda p: p.__delitem__(slice(1, None)), "at least 2"),
+    (lambda p: p[0].pop("position"), "pose 0 needs"),
+])
+def test_bad_yaml_trajectories_name_file_and_pose(tmp_path, mutate, match):
+    _, poses = _circle()
+    mutate(poses)
+    f = tmp_path / "bad.yaml"
+    f.write_text(yaml.safe_dump({"poses": poses}))
+    with pytest.raises(InputError, match=match) as err:
+        load_poses(f)
+    assert str(f) in str(err.value)
+
+
+def test_bad_csv_and_gaps(tmp_path):
+    f = tmp_path / "bad.csv"
+    f.write_text("t_ns,x,y,z\n0,1,2,3\n")
+    with pytest.raises(InputError, match="need t_ns"):
+        load_poses(f)
+    f.write_text("t_ns,x,y,z,qx,qy,qz,qw\n0,0,0,0,0,0,0,1\n10,nan,0,0,0,0,0,1\n")
+    with pytest.raises(InputError, match="line 3.*NaN"):
+        load_poses(f)
+    f.write_text("t_ns,x,y,z,qx,qy,qz,qw\n0,0,0,0,0,0,0,1\n2000000000,1,0,0,0,0,0,1\n")
+    with pytest.raises(InputError, match="gap of 2.000 s.*max_gap 0.5"):
+        EventPublisher((), overrides={**SMALL, "trajectory": str(f)}, dds=False)
+    with pytest.raises(InputError, match="no such trajectory"):
+        load_poses(tmp_path / "missing.yaml")
+
+
+def test_extrinsics_must_be_rigid(tmp_path):
+    T = extrinsics([0.1, 0, 0], [0, 0, 90])
+    np.testing.assert_allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+    _, poses = _circle()
+    f = tmp_path / "t.yaml"
+    f.write_text(yaml.safe_dump({"poses": poses}))
+    scaled = (np.diag([2.0, 1.0, 1.0, 1.0])).ravel().tolist()
+    for bad, match in [({"camera.matrix": scaled}, "camera.matrix.*not a proper rotation"),
+                       ({"camera.quat": [0.0, 0.0, 0.0, 3.0]}, "camera.quat.*norm 3"),
+                       ({"camera.xyz": [0.0, float("nan"), 0.0]}, "camera.xyz.*finite")]:
+        with pytest.raises(InputError, match=match):
+            EventPublisher((), overrides={**SMALL, "trajectory": str(f), "bag": str(tmp_path / "never"), **bad},
+                           dds=False)
+    assert not (tmp_path / "never").exists()
+
+
+def test_checkpoint_from_another_version_is_refused(tmp_path):
+    import torch
+
+    from evdnerf_ros.train.checkpoint import FORMAT, FORMAT_VERSION
+
+    run = tmp_path / "run"
+    run.mkdir()
+    torch.save({"format": FORMAT, "format_version": FORMAT_VERSION, "software_version": "99.0.0"},
+               run / "checkpoint.pt")
+    _, poses = _circle()
+    f = tmp_path / "t.yaml"
+    f.write_text(yaml.safe_dump({"poses": poses}))
+    with pytest.raises(InputError, match=r"checkpoint.pt: written by evdnerf_ros 99.0.0.*retrain"):
+        run_node((), overrides={**SMALL, "run_dir": str(run), "trajectory": str(f), "bag": str(tmp_path / "b")},
+                 dds=False)
+    assert not (tmp_path / "b").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["run", "t.yaml"]
+
+
+# ----------------------------------------------------------------------------- the event stream
+
+@pytest.mark.parametrize("encoding", ["mono", "evt3", "array"])
+def test_published_stream_equals_offline_generator(tmp_path, encoding):
+    offset = 150_000_000
+    rep, bag = publish(tmp_path, encoding=encoding, duration=0.06, scene_time_offset=offset / 1e9, chunk=0.02)
+    ref = offline_events(24, 24, 60_000_000, offset)
+    assert ref.size > 200
+    if encoding == "evt3":
+        from evdnerf_ros.events.codecs import quantize_to_us
+
+        ref = quantize_to_us(ref, time_base_ns=0)
+    got = read_events(bag, EVENTS).events
+    np.testing.assert_array_equal(got, ref)
+    assert rep.events == ref.size and not rep.interrupted
+    with open_bag(bag) as b:
+        infos = list(b.read_messages("/event_publisher/camera_info"))
+        assert len(infos) == 1
+        info = messages.intrinsics_from_camera_info(infos[0][1])
+        cam = PinholeCamera.from_fov(24, 24, load_scene("fork", check_cameras=False).camera.fov_x_deg)
+        np.testing.assert_allclose(info["K"], cam.K)
+        assert (info["width"], info["height"], info["frame_id"]) == (24, 24, "event_camera")
+
+
+def test_leave_out_and_adaptive_switches_change_cost_not_events(tmp_path):
+    base = dict(duration=0.05, scene_time_offset=0.15, encoding="mono", chunk=0.025)
+    on, b1 = publish(tmp_path, "on", **base)
+    off, b2 = publish(tmp_path, "off", leave_out=False, **base)
+    np.testing.assert_array_equal(read_events(b1, EVENTS).events, read_events(b2, EVENTS).events)
+    assert on.rays_rendered < 0.8 * off.rays_rendered          # primitives tested only inside their screen boxes
+    # static start: the adaptive sampler takes max-size steps where nothing moves
+    still = dict(duration=0.08, scene_time_offset=0.0, encoding="mono", chunk=0.04)
+    ad, _ = publish(tmp_path, "ad", adaptive=True, **still)
+    fx, _ = publish(tmp_path, "fx", adaptive=False, **still)
+    assert ad.events == fx.events == 0
+    assert ad.renders * 4 < fx.renders           # 17 renders (10 ms steps + midpoints) against 81
+
+
+# ----------------------------------------------------------------------------- stability
+
+def test_static_camera_static_scene_gives_no_events(tmp_path):
+    rep, bag = publish(tmp_path, duration=0.09, scene_time_offset=0.0, adaptive=True)
+    assert rep.events == 0 and rep.messages == 0 and rep.topics["/event_publisher/camera_info"] == 1
+    assert read_events(bag, EVENTS).events.size == 0           # the topic is in the bag, empty
+
+
+def _traj_file(tmp_path, Ts, span_ns):
+    t = np.linspace(0, span_ns, len(Ts)).astype(np.int64)
+    poses = []
+    for ti, T in zip(t, Ts):
+        q = messages.rotation_to_quaternion(T[:3, :3])
+        poses.append({"t_ns": int(ti), "position": T[:3, 3].tolist(), "orientation": q.tolist()})
+    f = tmp_path / "traj.yaml"
+    f.write_text(yaml.safe_dump({"poses": poses}))
+    return f
+
+
+def test_empty_view_and_tiny_resolution(tmp_path):
+    sky = look_at([0.0, 0.0, 5.0], [0.0, 0.1, 50.0])           # camera looks up, away from every object
+    f = _traj_file(tmp_path, [sky, sky], 50_000_000)
+    rep, _ = publish(tmp_path, "sky", trajectory=str(f), scene_time_offset=0.2)
+    assert rep.events == 0 and rep.renders > 10
+    rep, bag = publish(tmp_path, "tiny", **{"camera.width": 3, "camera.height": 2, "duration": 0.15,
+                                            "scene_time_offset": 0.15, "encoding": "mono"})
+    ev = read_events(bag, EVENTS).events
+    assert rep.events == ev.size > 0 and ev["x"].max() < 3 and ev["y"].max() < 2
+
+
+def test_very_fast_trajectory(tmp_path):
+    scene = load_scene("fork", check_cameras=False)
+    ring = scene.camera_poses("train", views=36)
+    f = _traj_file(tmp_path, ring + ring[:1], 20_000_000)         # one turn around the scene in 20 ms
+    rep, bag = publish(tmp_path, trajectory=str(f), encoding="mono", adaptive=True, min_step_ns=50_000)
+    ev = read_events(bag, EVENTS).events
+    assert rep.events == ev.size > 1000
+    assert np.all(np.diff(ev["t"]) >= 0) and ev["t"][0] > 0 and ev["t"][-1] <= 20_000_000
+    assert ev["x"].max() < 24 and ev["y"].max() < 24
+
+
+# ----------------------------------------------------------------------------- CLI
+
+def test_evdnerf_publish_cli(tmp_path, capsys):
+    params = tmp_path / "p.yaml"
+    params.write_text(yaml.safe_dump({"event_publisher": {"ros__parameters": {
+        "camera": {"width": 20, "height": 16}, "adaptive": False, "realtime_factor": 0.0, "chunk": 0.02}}}))
+    out = tmp_path / "out"
+    assert main(["publish", "-o", str(out), "--params-file", str(params), "--duration", "0.04",
+                 "-p", "scene_time_offset=0.15", "--encoding", "mono", "--json"]) == 0
+    import json
+
+    rep = json.loads(capsys.readouterr().out)
+    ev = read_events(out, EVENTS).events
+    assert rep["events"] == ev.size > 0 and rep["rtf"] > 0 and ev["x"].max() < 20
+    assert main(["publish", "-o", str(out), "--duration", "0.01"]) == 2            # exists: refused
+    assert "already exists" in capsys.readouterr().err
+    assert main(["publish", "--duration", "0.01"]) == 2
+    assert main(["publish", "-o", str(tmp_path / "x"), "-p", "c_pos=-1"]) == 2
+    assert "c_pos" in capsys.readouterr().err and not (tmp_path / "x").exists()
