@@ -76,7 +76,8 @@ PARAMETERS = [
     P("camera_info_period", 1.0, "seconds between CameraInfo messages", min=1e-3),
     P("bag", "", "also record into this rosbag2 (must not exist); empty: no bag", read_only=True),
     P("bag_storage", "mcap", "rosbag2 storage of the bag", choices=("mcap", "sqlite3"), read_only=True),
-    P("wait_for_subscribers", 0, "wait until this many subscribers match ~/events before starting", min=0),
+    P("wait_for_subscribers", 0, "wait until this many subscribers match ~/events (and one ~/camera_info) "
+      "before starting", min=0),
     P("wait_timeout", 10.0, "seconds to wait for subscribers", min=0.0),
 ]
 
@@ -226,11 +227,14 @@ class EventPublisher(Node):
 
         p = self.params
         rep = self.report
-        if p["wait_for_subscribers"] and self.dds is not None:
-            self.logger.info(f"waiting for {p['wait_for_subscribers']} subscriber(s) on {self.events_pub.topic}")
-            if not self.events_pub.dds.wait_for_subscribers(p["wait_for_subscribers"], p["wait_timeout"]):
-                self.logger.warn(f"{self.events_pub.topic}: only {self.events_pub.subscribers()} subscriber(s) after "
-                                 f"{p['wait_timeout']} s; publishing anyway")
+        n_subs = p["wait_for_subscribers"]
+        if n_subs and self.dds is not None:
+            deadline = time.monotonic() + p["wait_timeout"]
+            for pub, n in ((self.events_pub, n_subs), (self.info_pub, 1)):
+                self.logger.info(f"waiting for {n} subscriber(s) on {pub.topic}")
+                if not pub.dds.wait_for_subscribers(n, max(0.0, deadline - time.monotonic())):
+                    self.logger.warn(f"{pub.topic}: only {pub.subscribers()} subscriber(s) after "
+                                     f"{p['wait_timeout']} s; publishing anyway")
 
         def sink(topic, msgtype, data, stamp):
             self.events_pub.publish_raw(data, stamp)
