@@ -95,6 +95,7 @@ def _cmd_simulate(args) -> int:
         max_step_ns=parse_duration_ns(args.max_step, name="--max-step"),
         supersample=args.supersample, frame_rate_hz=args.frame_rate,
         blur_samples=args.blur_samples, gt_times=args.gt_times,
+        moving_views=args.moving_views, moving_arc_deg=args.moving_arc_deg,
         max_clock_offset_s=args.max_clock_offset, jobs=args.jobs)
     simulate_session(args.scene, Path(args.output), options, overwrite=args.overwrite)
     return 0
@@ -323,6 +324,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="renders averaged per frame exposure (default %(default)s)")
     p.add_argument("--gt-times", type=int, default=d.gt_times,
                    help="ground-truth intensity/depth renders per view (default %(default)s)")
+    p.add_argument("--moving-views", type=int, default=d.moving_views,
+                   help="extra validation views whose camera sweeps along the ring while the "
+                        "scene moves; poses at 1 kHz on the pose topic (default %(default)s)")
+    p.add_argument("--moving-arc-deg", type=float, default=d.moving_arc_deg,
+                   help="azimuth a moving view sweeps over the scene's time (default %(default)s)")
     p.add_argument("--max-clock-offset", type=float, default=d.max_clock_offset_s,
                    help="per-view camera clock offsets are drawn in [0, this) seconds "
                         "(default %(default)s)")

@@ -17,14 +17,14 @@ def rng():
 
 @pytest.fixture(scope="session")
 def tiny_train_h5(tmp_path_factory):
-    """A tiny training set (fork, 32x32 with 2x2 supersampling, 4 + 2 views, 20 Hz blurred frames,
-    ground-truth offsets), built once."""
+    """A tiny training set (fork, 32x32 with 2x2 supersampling, 4 training + 2 validation views
+    + 1 moving validation view, 20 Hz blurred frames, ground-truth offsets), built once."""
     from evdnerf_ros.session.convert import run_convert
     from evdnerf_ros.sim.session import SimulationOptions, simulate_session
 
     tmp = tmp_path_factory.mktemp("tiny_train")
     simulate_session("fork", tmp / "s", SimulationOptions(
-        views=4, val_views=2, resolution=(32, 32), frame_rate_hz=20, blur_samples=2, gt_times=0,
+        views=4, val_views=2, moving_views=1, resolution=(32, 32), frame_rate_hz=20, blur_samples=2, gt_times=0,
         supersample=2, jobs=1, min_step_ns=2_000_000), log=lambda *_: None)
     run_convert(tmp / "s", tmp / "t.h5", offsets="ground-truth", log=lambda *_: None)
     return tmp / "t.h5"

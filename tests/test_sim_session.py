@@ -133,3 +133,34 @@ def test_bad_input(tmp_path, capsys):
     assert main(["simulate", "fork", "-o", str(tmp_path / "y"), "--views", "0"]) == 2
     assert "--views must be >= 1" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exists"]
+
+
+def test_moving_view_sweeps_the_ring_and_publishes_its_poses(tmp_path):
+    """A moving validation view: poses at 1 kHz on the pose topic, sweeping moving_arc_deg of
+    the ring; it sees change (events) even while the scene itself is still."""
+    from dataclasses import replace
+
+    opts = replace(OPTS, views=1, val_views=0, moving_views=1, moving_arc_deg=30.0,
+                   frame_rate_hz=0, gt_times=0)
+    session = simulate_session("fork", tmp_path / "s", opts, log=lambda *_: None)
+    static, moving = session["views"]
+    assert moving["name"] == "moving_00" and moving["split"] == "val"
+    assert moving["moving_arc_deg"] == 30.0 and static["moving_arc_deg"] is None
+    scene = load_scene("fork")
+    ring = scene.cameras.ring
+    offset = moving["ground_truth"]["clock_offset_ns"]
+    with open_bag(tmp_path / "s" / moving["bag"]) as bag:
+        poses = [pose_from_pose_stamped(bag.deserialize(m.data, m.msgtype))
+                 for m in bag.messages("/rig/camera_pose")]
+    stamps = np.array([s for _, s, _ in poses]) - offset
+    assert len(poses) == (scene.end_ns - scene.start_ns) // 1_000_000 + 1
+    assert stamps[0] == scene.start_ns and stamps[-1] == scene.end_ns and np.all(np.diff(stamps) > 0)
+    np.testing.assert_allclose(poses[0][0], ring.pose_at(moving["azimuth_deg"]), atol=1e-12)
+    np.testing.assert_allclose(poses[-1][0], ring.pose_at(moving["azimuth_deg"] + 30.0), atol=1e-12)
+    m0, _ = scene.motion_span_ns()
+    before_motion = {}
+    for v, off in ((static, static["ground_truth"]["clock_offset_ns"]), (moving, offset)):
+        ev = read_events(tmp_path / "s" / v["bag"]).events
+        before_motion[v["name"]] = int(np.count_nonzero(ev["t"] - off < m0))
+    assert before_motion == {"view_00": 0, "moving_00": before_motion["moving_00"]}
+    assert before_motion["moving_00"] > 50

@@ -2,18 +2,26 @@
 
 `validation_eval(...)` returns the `eval_fn` the trainer calls periodically: it renders
 dL_hat = log(B(t_k) + eps) - log(B(t_{k-1}) + eps) for the protocol windows of the
-validation views (training views when the set has none) and compares it with the ground
-truth dL of the events (Eq. 5), continuous and quantised, next to the all-zero floor.
+static validation views (training views when the set has none) and compares it with the
+ground truth dL of the events (Eq. 5), continuous and quantised, next to the all-zero floor.
+
+A moving view (validation views with a camera trajectory, e.g. `evdnerf simulate
+--moving-views`) is scored the same way, with B(t) rendered at the camera's pose at t
+(interpolated from its poses, as its pose topic's consumers do): every pixel may change,
+so nothing is skipped for it.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
 from ..events.slicing import window_edges
 from ..field.render import render_image
+from ..sim.pose_track import PoseTrack
 from ..train.sampler import camera_of
-from .metrics import event_metrics, protocol_windows
+from .metrics import brightness_align, event_metrics, protocol_windows, psnr
 
 
 def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: int,
@@ -28,13 +36,21 @@ def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: i
     preds, gts = [], []
     for v in views:
         cam = camera_of(train_set.K(v), train_set.width, train_set.height)
-        T = train_set.pose(v)
+        track = train_set.poses(v)
         gts.append(train_set.log_change_stack(v, edges)[ks])
         for k in ks:
             tn = train_set.normalized_time(edges[k:k + 2])
-            b0, b1 = render_image(field, cam, T, [float(tn[0]), float(tn[1])], box, n_samples,
-                                  near=near, far=far, background=background, occupancy=occupancy,
-                                  dynamic=dynamic, changes_only=dynamic is not None)
+            if track is None:       # a static camera: both ends from shared samples
+                b0, b1 = render_image(field, cam, train_set.pose(v), [float(tn[0]), float(tn[1])],
+                                      box, n_samples, near=near, far=far, background=background,
+                                      occupancy=occupancy, dynamic=dynamic,
+                                      changes_only=dynamic is not None)
+            else:
+                pose_at = PoseTrack(*track, source=f"{train_set.path}: view {v} poses")
+                b0, b1 = (render_image(field, cam, pose_at(int(edges[k + j])), float(tn[j]), box,
+                                       n_samples, near=near, far=far, background=background,
+                                       occupancy=occupancy, dynamic=dynamic)
+                          for j in (0, 1))
             b0, b1 = (np.asarray(b.detach().cpu().numpy() if hasattr(b, "detach") else b, np.float64)
                       for b in (b0, b1))
             preds.append(np.log(b1 + log_eps) - np.log(b0 + log_eps))
@@ -50,7 +66,7 @@ def validation_eval(*, n_windows: int | None = None, max_views: int | None = Non
     """
     def eval_fn(field, ctx) -> dict:
         ts = ctx["train_set"]
-        views = (ts.val_views or ts.train_views)[:max_views]
+        views = (static_views(ts, ts.val_views) or ts.train_views)[:max_views]
         _, _, m = evaluate_views(field, ts, views, n_windows or ctx["windows"], box=ctx["box"],
                                  n_samples=ctx["n_samples"], log_eps=ctx["log_eps"],
                                  near=ctx["near"], far=ctx["far"], background=ctx["background"],
@@ -60,6 +76,43 @@ def validation_eval(*, n_windows: int | None = None, max_views: int | None = Non
                 "val_mae": m["continuous"]["mae"], "val_views": len(views)}
 
     return eval_fn
+
+
+def intensity_renders(field, train_set, view, *, box, n_samples: int, near: float = 0.0,
+                      far: float = float("inf"), background: float = 0.0, dynamic=None,
+                      times: int = 3) -> dict:
+    """Grey and depth renders of a static view at ``times`` of its blurred frames' mid-exposure
+    times, each brightness-aligned (log space: a gain and gamma) to its frame, as in the
+    paper's supplement: events fix intensity only up to that.  Returns {t_ns, frames, grey
+    (aligned), depth, psnr (aligned grey vs frame, data range 1; the frames are motion-blurred
+    so this is a rough check)}; None when the view has no frames."""
+    fr = train_set.frames(view)
+    if fr is None or not len(fr["t"]):
+        return None
+    cam = camera_of(train_set.K(view), train_set.width, train_set.height)
+    T = train_set.pose(view)
+    t0, t1 = train_set.time_range
+    inside = np.flatnonzero((fr["t"] >= t0) & (fr["t"] < t1))
+    if not inside.size:
+        return None
+    pick = inside[np.unique(np.linspace(0, inside.size - 1, times).round().astype(int))]
+    out = {"t_ns": fr["t"][pick].tolist(), "frames": [], "grey": [], "depth": [], "psnr": []}
+    for i in pick:
+        tn = float(train_set.normalized_time(np.array([fr["t"][i]], np.int64))[0])
+        grey, depth = (render_image(field, cam, T, tn, box, n_samples, near=near, far=far,
+                                    background=background, dynamic=dynamic, key=key).numpy()
+                       for key in ("grey", "depth"))
+        frame = np.asarray(fr["frames"][i], np.float64)
+        aligned, _, _ = brightness_align(np.clip(grey, 0, None), frame, space="log")
+        out["frames"].append(frame)
+        out["grey"].append(aligned)
+        out["depth"].append(depth)
+        out["psnr"].append(psnr(aligned, frame, data_range=1.0))
+    return out
+
+
+def static_views(train_set, views) -> list[str]:
+    return [v for v in views if train_set.poses(v) is None]
 
 
 def load_field(run_dir):
@@ -90,7 +143,7 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
     import torch
 
     from ..io.trainingset import TrainingSet
-    from .figures import side_by_side
+    from .figures import intensity_figure, side_by_side
 
     field, cfg, box, iteration, dynamic = load_field(run_dir)
     n = int(n_windows or cfg.windows[-1])
@@ -98,7 +151,9 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
               "trained_windows": n, "lpips": None,
               "lpips_note": "not computed: LPIPS needs AlexNet weights, which cannot be downloaded here"}
     with TrainingSet(train_h5) as ts, torch.no_grad():
-        splits = {"val": ts.val_views[:max_views], "train": ts.train_views[:max_views]}
+        splits = {"val": static_views(ts, ts.val_views)[:max_views],
+                  "train": ts.train_views[:max_views],
+                  "moving": [v for v in ts.val_views if ts.poses(v) is not None][:max_views]}
         for split, views in splits.items():
             if not views:
                 continue
@@ -118,4 +173,16 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
                 if split == "val" and factor == 1 and image_path is not None:
                     side_by_side(gt, pred, image_path)
                     result["image"] = str(image_path)
+        views = splits["val"] or splits["train"]
+        renders = intensity_renders(field, ts, views[0], box=box, n_samples=cfg.n_samples,
+                                    near=cfg.near, far=cfg.far, background=cfg.background,
+                                    dynamic=dynamic) if views else None
+        if renders is not None:
+            result["intensity"] = {"view": views[0], "t_ns": renders["t_ns"],
+                                   "aligned_psnr_vs_blurred_frames": renders["psnr"]}
+            if image_path is not None:
+                path = Path(image_path).with_name(Path(image_path).stem + "_intensity.png")
+                intensity_figure(renders, path, title=f"view {views[0]}: blurred frame, "
+                                 "brightness-aligned render, depth")
+                result["intensity"]["image"] = str(path)
     return result

@@ -74,6 +74,28 @@ def side_by_side(gt_stack, pred_stack, path, *, vmax: float | None = None,
     return save_figure(fig, path)
 
 
+def intensity_figure(renders: dict, path, *, title: str = "") -> Path:
+    """PNG grid, one column per time: blurred frame, brightness-aligned grey render, depth."""
+    plt = _pyplot()
+    n = len(renders["t_ns"])
+    fig, axes = plt.subplots(3, n, figsize=(2.2 * n + 0.6, 6.4), squeeze=False)
+    for j in range(n):
+        rows = ((renders["frames"][j], "blurred frame", "gray", (0, 1)),
+                (renders["grey"][j], f"render ({renders['psnr'][j]:.1f} dB)", "gray", (0, 1)),
+                (renders["depth"][j], "depth (m)", "viridis", (None, None)))
+        for row, (img, name, cmap, (lo, hi)) in enumerate(rows):
+            ax = axes[row, j]
+            ax.imshow(img, cmap=cmap, vmin=lo, vmax=hi, interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_ylabel(name if j == 0 or row == 1 else "", fontsize=8)
+            if row == 0:
+                ax.set_title(f"t = {renders['t_ns'][j] / 1e9:.3f} s", fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
 def _number(obj: dict, key: str, where: str) -> float:
     if key not in obj:
         raise InputError(f"{where}: missing key {key!r}")

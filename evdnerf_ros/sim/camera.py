@@ -155,6 +155,10 @@ class CameraRing:
         off = self.offset_deg + (self.validation_offset_deg if split == "val" else 0.0)
         return ring_poses(n, self.radius, self.elevation_deg, self.look_at, off)
 
+    def pose_at(self, azimuth_deg: float) -> np.ndarray:
+        """T_world_cam of a camera on this ring at ``azimuth_deg``."""
+        return ring_poses(1, self.radius, self.elevation_deg, self.look_at, float(azimuth_deg))[0]
+
     def azimuths_deg(self, split: str = "train", views: int | None = None) -> list[float]:
         n = views if views is not None else (
             self.views if split == "train" else (self.validation_views or self.views))

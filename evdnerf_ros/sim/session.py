@@ -59,6 +59,7 @@ POSE_TOPIC = "/rig/camera_pose"
 JOINT_TOPIC = "/rig/servo/joint_states"
 TRIGGER_TOPIC = "/rig/servo/trigger"
 JOINT_STATE_PERIOD_NS = 20_000_000    # servo frame: 50 Hz
+MOVING_POSE_PERIOD_NS = 1_000_000     # a moving view's pose topic: 1 kHz
 TRIGGER_PULSE_NS = 1_000_000          # trigger-out pulse width at motion start
 
 
@@ -83,6 +84,8 @@ class SimulationOptions:
     frame_rate_hz: float = 30.0           # blurred grey frames; 0 disables them
     blur_samples: int = 8                 # renders averaged per exposure
     gt_times: int = 5                     # ground-truth intensity/depth renders per view
+    moving_views: int = 0                 # extra validation views whose camera moves
+    moving_arc_deg: float = 20.0          # azimuth a moving view sweeps over the scene's time
     max_clock_offset_s: float = 5.0       # injected camera clock offsets in [0, this)
     jobs: int = 0                         # worker processes; 0: one per CPU (at most views)
 
@@ -91,6 +94,8 @@ class SimulationOptions:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise InputError(f"simulate: {name.replace('_', '-')} must be finite and > 0, got {v}")
+        if not math.isfinite(self.moving_arc_deg):
+            raise InputError(f"simulate: moving-arc-deg must be finite, got {self.moving_arc_deg}")
         for name in ("threshold_sigma", "frame_rate_hz", "max_clock_offset_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -98,7 +103,7 @@ class SimulationOptions:
         for name in ("supersample", "blur_samples", "min_step_ns", "max_step_ns"):
             if getattr(self, name) < 1:
                 raise InputError(f"simulate: {name.replace('_', '-')} must be >= 1")
-        for name in ("views", "val_views", "gt_times", "refractory_ns", "jobs"):
+        for name in ("views", "val_views", "gt_times", "refractory_ns", "jobs", "moving_views"):
             v = getattr(self, name)
             if v is not None and v < 0:
                 raise InputError(f"simulate: {name.replace('_', '-')} must be >= 0")
@@ -118,6 +123,7 @@ class ViewTask:
     clock_offset_ns: int
     device_offset_ns: int
     seed: int
+    arc_deg: float = 0.0                  # a moving view: azimuth swept from azimuth_deg
 
 
 @dataclass
@@ -157,20 +163,54 @@ def _view_tasks(scene: Scene, options: SimulationOptions) -> list[ViewTask]:
     max_offset = int(round(options.max_clock_offset_s * 1e9))
     ring = scene.cameras.ring
     tasks = []
-    for split, prefix, n in (("train", "view", options.views), ("val", "val", options.val_views)):
-        if split == "val" and n == 0:
+    rings = [("train", "view", options.views), ("val", "val", options.val_views),
+             ("moving", "moving", options.moving_views)]
+    for kind, prefix, n in rings:
+        if kind != "train" and n == 0:
             continue
-        poses = ring.poses(split, n)
-        azimuths = ring.azimuths_deg(split, n)
-        for k, (T, az) in enumerate(zip(poses, azimuths)):
+        # moving views start halfway between two validation views and sweep moving_arc_deg
+        azimuths = (ring.azimuths_deg("val", n) if kind == "moving" else ring.azimuths_deg(kind, n))
+        if kind == "moving":
+            azimuths = [a + 180.0 / n for a in azimuths]
+        for k, az in enumerate(azimuths):
             tasks.append(ViewTask(
-                name=f"{prefix}_{k:02d}", index=len(tasks), split=split, azimuth_deg=float(az),
-                T_world_cam=np.asarray(T, np.float64),
+                name=f"{prefix}_{k:02d}", index=len(tasks), split="train" if kind == "train" else "val",
+                azimuth_deg=float(az), T_world_cam=ring.pose_at(az),
                 clock_offset_ns=int(rng.integers(0, max_offset)) if max_offset > 0 else 0,
                 device_offset_ns=int(rng.integers(1_000_000_000, 60_000_000_000)),
-                seed=int(rng.integers(0, 2 ** 31))))
-    scene.check_cameras([t.T_world_cam for t in tasks], [t.name for t in tasks])
+                seed=int(rng.integers(0, 2 ** 31)),
+                arc_deg=float(options.moving_arc_deg) if kind == "moving" else 0.0))
+    poses = [(t.name, T) for t in tasks for T in _pose_samples(scene, t)]
+    scene.check_cameras([T for _, T in poses], [name for name, _ in poses])
     return tasks
+
+
+def _pose_samples(scene: Scene, task: ViewTask) -> list[np.ndarray]:
+    """The view's pose (static) or its sampled trajectory (moving: one pose per 1 ms)."""
+    if task.arc_deg == 0.0:
+        return [task.T_world_cam]
+    _, Ts = _moving_poses(scene, task)
+    return list(Ts)
+
+
+def _moving_poses(scene: Scene, task: ViewTask) -> tuple[np.ndarray, np.ndarray]:
+    """(t (M,) scene ns, T_world_cam (M, 4, 4)): a constant-rate sweep along the ring."""
+    start, end = scene.start_ns, scene.end_ns
+    t = np.arange(start, end, MOVING_POSE_PERIOD_NS, dtype=np.int64)
+    t = np.append(t, np.int64(end))
+    frac = (t - start) / float(max(1, end - start))
+    Ts = np.stack([scene.cameras.ring.pose_at(task.azimuth_deg + task.arc_deg * f) for f in frac])
+    return t, Ts
+
+
+def _pose_function(scene: Scene, task: ViewTask):
+    """t_ns -> T_world_cam of the view (a moving view interpolates its sampled poses, exactly
+    as a consumer of its pose topic would)."""
+    if task.arc_deg == 0.0:
+        return lambda t: task.T_world_cam
+    from .pose_track import PoseTrack
+
+    return PoseTrack(*_moving_poses(scene, task), source=f"view {task.name} trajectory")
 
 
 def _run_views(scene, camera, tasks, options, out: Path, log) -> list[ViewResult]:
@@ -227,20 +267,22 @@ def _simulate_view(scene: Scene, camera: PinholeCamera, task: ViewTask,
 
     t0 = time.perf_counter()
     renderer = SceneRenderer(scene, camera, options.supersample)
-    T = task.T_world_cam
+    pose_at = _pose_function(scene, task)
     start, end = scene.start_ns, scene.end_ns
     span = scene.motion_span_ns()
     m0, m1 = (start, start) if span is None else (max(start, span[0]), min(end, span[1]))
+    if task.arc_deg != 0.0:                  # a moving camera sees change all the time
+        m0, m1 = start, end
     gen = EventGenerator(camera.width, camera.height, c_pos=options.c_pos, c_neg=options.c_neg,
                          eps=options.eps, threshold_sigma=options.threshold_sigma,
                          refractory_ns=options.refractory_ns, seed=task.seed)
-    first = renderer(T, start)
+    first = renderer(pose_at(start), start)
     gen.reset(first, start)
     chunks, renders, stats = [], 1, {}
     if m1 > m0:
         if m0 > start:                       # static lead-in: one render stands for it
             chunks.append(gen.step_log(gen.last_log(), m0))
-        ev, st = simulate_renderer(lambda t: renderer(T, t), m0, m1, gen, mode="adaptive",
+        ev, st = simulate_renderer(lambda t: renderer(pose_at(t), t), m0, m1, gen, mode="adaptive",
                                    tolerance_c=options.tolerance_c,
                                    min_step_ns=options.min_step_ns,
                                    max_step_ns=options.max_step_ns)
@@ -276,8 +318,14 @@ def _simulate_view(scene: Scene, camera: PinholeCamera, task: ViewTask,
         bag.write(CAMERA_INFO_TOPIC, "sensor_msgs/msg/CameraInfo",
                   camera_info(camera.width, camera.height, _K(camera), stamp_ns=rec_start),
                   rec_start)
-        bag.write(POSE_TOPIC, "geometry_msgs/msg/PoseStamped",
-                  pose_stamped(T, rec_start, "world"), rec_start)
+        if task.arc_deg == 0.0:
+            bag.write(POSE_TOPIC, "geometry_msgs/msg/PoseStamped",
+                      pose_stamped(task.T_world_cam, rec_start, "world"), rec_start)
+        else:
+            for t_scene, T in zip(*_moving_poses(scene, task)):
+                stamp = int(t_scene) + task.clock_offset_ns
+                bag.write(POSE_TOPIC, "geometry_msgs/msg/PoseStamped",
+                          pose_stamped(T, stamp, "world"), stamp)
         for t_scene, what in servo_times:
             stamp = t_scene + task.clock_offset_ns
             device = t_scene + task.device_offset_ns
@@ -292,9 +340,9 @@ def _simulate_view(scene: Scene, camera: PinholeCamera, task: ViewTask,
         bag.write_events(EVENT_TOPIC, events, width=camera.width, height=camera.height,
                          encoding="evt3", triggers=triggers if len(triggers) else None)
 
-    renders += _write_frames(renderer, T, scene, (m0, m1), task, options,
+    renders += _write_frames(renderer, pose_at, scene, (m0, m1), task, options,
                              out / "frames" / f"{task.name}.npz")
-    renders += _write_ground_truth(renderer, T, scene, task, options,
+    renders += _write_ground_truth(renderer, pose_at, scene, task, options,
                                    out / "ground_truth" / f"{task.name}.npz")
     return ViewResult(task.name, int(events.size), int(len(triggers)), renders,
                       time.perf_counter() - t0, stats)
@@ -304,7 +352,7 @@ def _K(camera: PinholeCamera) -> np.ndarray:
     return np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]], np.float64)
 
 
-def _write_frames(renderer, T, scene, motion, task, options, path) -> int:
+def _write_frames(renderer, pose_at, scene, motion, task, options, path) -> int:
     """Motion-blurred frames: the mean of `blur_samples` renders over each exposure."""
     if options.frame_rate_hz == 0:
         return 0
@@ -325,9 +373,11 @@ def _write_frames(renderer, T, scene, motion, task, options, path) -> int:
             t = a + (2 * j + 1) * period // (2 * k)
             # Outside the motion span the image equals the one at the span's edge.
             key = min(max(t, m0), m1) if m1 > m0 else start
+            if task.arc_deg != 0.0:
+                key = t
             img = cache.get(key)
             if img is None:
-                img = renderer(T, key)
+                img = renderer(pose_at(key), key)
                 renders += 1
                 if not (m0 < key < m1):
                     cache[key] = img
@@ -340,13 +390,13 @@ def _write_frames(renderer, T, scene, motion, task, options, path) -> int:
     return renders
 
 
-def _write_ground_truth(renderer, T, scene, task, options, path) -> int:
+def _write_ground_truth(renderer, pose_at, scene, task, options, path) -> int:
     n = options.gt_times
     if n == 0:
         return 0
     t = np.array([scene.start_ns + ((scene.end_ns - scene.start_ns) * i) // max(1, n - 1)
                   for i in range(n)], np.int64)
-    results = [renderer.render(T, int(ti)) for ti in t]
+    results = [renderer.render(pose_at(int(ti)), int(ti)) for ti in t]
     with atomic_output(path) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, t_scene=t, t_view=t + task.clock_offset_ns,
                             intensity=np.stack([r.intensity for r in results]),
@@ -367,6 +417,7 @@ def _session_yaml(scene, scene_ref, camera, options, tasks, results) -> dict:
             "bag": task.name,
             "split": task.split,
             "azimuth_deg": task.azimuth_deg,
+            "moving_arc_deg": task.arc_deg if task.arc_deg else None,
             "T_world_cam": np.asarray(task.T_world_cam).tolist(),
             "events": r.events,
             "trigger_events": r.triggers,
