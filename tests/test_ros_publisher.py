@@ -278,3 +278,38 @@ def test_evdnerf_publish_cli(tmp_path, capsys):
     assert main(["publish", "--duration", "0.01"]) == 2
     assert main(["publish", "-o", str(tmp_path / "x"), "-p", "c_pos=-1"]) == 2
     assert "c_pos" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+# ----------------------------------------------------------------------------- trained field source
+
+def test_field_source_occupancy_mask_saves_rays_not_pixels(tmp_path):
+    import torch
+
+    from evdnerf_ros.field import make_field
+    from evdnerf_ros.nodes.sources import FieldSource
+    from evdnerf_ros.train.checkpoint import save_checkpoint
+    from evdnerf_ros.train.config import TrainConfig
+
+    cfg = TrainConfig()
+    torch.manual_seed(1)
+    occ = torch.zeros((8, 8, 8), dtype=torch.bool)
+    occ[3:5, 3:5, 3:5] = True                         # a small occupied core: most rays cross nothing
+    (tmp_path / "run").mkdir()
+    save_checkpoint(tmp_path / "run" / "checkpoint.pt", field=make_field(cfg.backbone, **cfg.field), optimizer=None,
+                    iteration=0, config=cfg.to_dict(), backbone=cfg.backbone, rng={},
+                    box=[[-1, -1, -1], [1, 1, 1]], extra={"occupied": occ})
+    cam = PinholeCamera.from_fov(20, 16, 50.0)
+    T = look_at([0.0, -3.0, 0.3], [0.0, 0.0, 0.0])
+    on = FieldSource(tmp_path / "run", cam, duration_ns=10**9, leave_out=True)
+    off = FieldSource(tmp_path / "run", cam, duration_ns=10**9, leave_out=False)
+    for t in (0, 500_000_000):
+        a, b = on(T, t), off(T, t)
+        assert a.shape == (16, 20) and a.dtype == np.float32
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
+    assert on.rays_rendered < 0.5 * off.rays_rendered and off.rays_rendered == off.rays_total == 2 * 320
+    poses = [{"t_ns": t, "position": T[:3, 3].tolist(), "orientation": messages.rotation_to_quaternion(
+        T[:3, :3]).tolist()} for t in (0, 20_000_000)]
+    (tmp_path / "t.yaml").write_text(yaml.safe_dump({"poses": poses}))
+    rep, _ = publish(tmp_path, run_dir=str(tmp_path / "run"), trajectory=str(tmp_path / "t.yaml"),
+                     field_duration=0.02, **{"camera.width": 12, "camera.height": 10})
+    assert rep.renders == 21 and rep.rays_rendered < rep.rays_total

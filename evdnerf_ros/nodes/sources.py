@@ -73,6 +73,7 @@ class FieldSource:
         self.chunk = int(chunk)
         self.rays_total = 0
         self.rays_rendered = 0
+        self._mask_cache = None
         self._torch = torch
 
     def default_duration_ns(self) -> int:
@@ -81,7 +82,15 @@ class FieldSource:
     def default_pose(self):
         raise InputError("a trained run has no default camera pose; give a trajectory")
 
-    def _ray_mask(self, o, d):
+    def _ray_mask(self, o, d, T):
+        key = np.asarray(T, dtype=np.float64).tobytes()
+        if self._mask_cache is not None and self._mask_cache[0] == key:   # a static camera: same rays
+            return self._mask_cache[1]
+        mask = self._compute_mask(o, d)
+        self._mask_cache = (key, mask)
+        return mask
+
+    def _compute_mask(self, o, d):
         from ..field.render import normalize_points, ray_box_intersect, sample_along_rays
 
         t_near, t_far, hit = ray_box_intersect(o, d, self.box, self.cfg.near, self.cfg.far)
@@ -103,7 +112,7 @@ class FieldSource:
         with torch.no_grad():
             o, d = camera_rays(cam, T_world_cam)
             n = o.shape[0]
-            idx = (torch.nonzero(self._ray_mask(o, d)).squeeze(1) if self.leave_out
+            idx = (torch.nonzero(self._ray_mask(o, d, T_world_cam)).squeeze(1) if self.leave_out
                    else torch.arange(n))
             out = torch.full((n,), float(self.cfg.background))
             for s in range(0, idx.numel(), self.chunk):

@@ -26,9 +26,16 @@ VOLATILE, TRANSIENT_LOCAL = "volatile", "transient_local"
 #: Longest a reliable write blocks when the reader's history is full (integer ns, as the binding needs).
 MAX_BLOCKING_NS = 100_000_000
 
+#: Loopback only, unicast discovery. The large UDP messages / fragments (loopback carries 64 KiB
+#: datagrams) and 8 MB socket buffers matter for event streams: with Cyclone's defaults (1344-byte
+#: fragments, small buffers) 1 MiB messages went at ~30 MB/s with losses, with these at ~400 MB/s
+#: on one shared core (bench/bench_publish.py). They only change how this process sends and
+#: receives; peers reassemble any fragment size.
 LOOPBACK_XML = ("<CycloneDDS><Domain><General><Interfaces><NetworkInterface name=\"lo\"/></Interfaces>"
-                "<AllowMulticast>false</AllowMulticast></General><Discovery>"
-                "<ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>120</MaxAutoParticipantIndex>"
+                "<AllowMulticast>false</AllowMulticast><MaxMessageSize>65500B</MaxMessageSize>"
+                "<FragmentSize>65000B</FragmentSize></General>"
+                "<Internal><SocketReceiveBufferSize min=\"8MB\"/><SocketSendBufferSize min=\"8MB\"/></Internal>"
+                "<Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>120</MaxAutoParticipantIndex>"
                 "<Peers><Peer address=\"localhost\"/></Peers></Discovery></Domain></CycloneDDS>")
 
 

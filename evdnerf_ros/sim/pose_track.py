@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
+from ..io.poses import check_times
 from .trajectory import matrix_to_quat, quat_to_matrix, slerp
 
 
@@ -19,11 +20,7 @@ class PoseTrack:
         T = np.asarray(T, dtype=np.float64)
         if t.ndim != 1 or T.shape != (t.size, 4, 4) or t.size < 2:
             raise InputError(f"{source}: need >= 2 times and as many 4x4 poses (got {t.shape}, {T.shape})")
-        dt = np.diff(t)
-        if np.any(dt <= 0):
-            i = int(np.flatnonzero(dt <= 0)[0]) + 1
-            raise InputError(f"{source}: pose {i} at t={int(t[i])} ns does not come after pose {i - 1}; "
-                             "times must increase strictly")
+        dt = np.diff(check_times(source, t))
         if max_gap_ns is not None and np.any(dt > max_gap_ns):
             i = int(np.argmax(dt))
             raise InputError(f"{source}: gap of {dt[i] / 1e9:.3f} s between pose {i} (t={int(t[i])} ns) and "

@@ -1,0 +1,362 @@
+"""Event publisher: real-time factor against resolution and render tolerance (with event error
+against the exact generator at fine sampling), the saving of each leave-out switch, and DDS
+throughput between two processes (raw-CDR fast path against the IdlStruct path).
+
+    python bench/bench_publish.py [--quick] [--out bench/results]
+
+Writes ``publish.json`` and ``publish.png`` into ``--out``.
+
+* **RTF against resolution**: the fork scene (servo swinging the fork, scene time 150-250 ms,
+  the camera static at the scene's first ring view), 64x64, 128x128, 346x260, adaptive
+  sampling (tolerance 0.1 C), leave-out on, evt3 packets, no bag and no DDS (the node's
+  compute path); RTF = trajectory seconds / wall seconds, median of repeats.
+* **Error against run time**: 64x64, the same span; adaptive sampling over its tolerance
+  (0.5 .. 0.02 C, min step 100 us) and over its min step (1 ms .. 50 us, tolerance 0.1 C), and
+  fixed rates 500 Hz .. 10 kHz; reference: the same generator fed at 20 kHz (50 us steps). Error:
+  relative L1 of the net-polarity event images over 10 windows of 10 ms
+  (sum |N - N_ref| / sum |N_ref|), and the relative event-count error.
+* **Leave-out savings** (128x128): screen-box prefiltering of the synthetic renderer on/off
+  (ray-primitive tests and wall time; events identical); adaptive time steps against a fixed
+  rate at the adaptive sampler's finest step (10 kHz), over a span where the fork moves and one
+  where nothing moves
+  (scene time 0-100 ms); for a trained field the occupancy-grid ray mask on/off (a
+  randomly initialised planes field with a half-empty occupancy grid, 64x64: rays rendered
+  and wall time; images identical).
+* **DDS throughput**: a writer process and a reader process on loopback (Cyclone DDS,
+  localhost only), EventPacket messages of 64 KiB and 1 MiB, reliable keep-last 64; the
+  reader deserialises every message (rosbags on the fast path, IdlStruct on the slow
+  path). MB/s = bytes received / (last - first arrival), median of repeats; the share of
+  messages delivered is reported too (keep-last drops what a slow reader cannot take).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from evdnerf_ros.nodes.event_publisher import run_node  # noqa: E402
+
+EVENTS = "/event_publisher/events"
+SPAN = dict(scene_time_offset=0.15, duration=0.1, chunk=0.01, realtime_factor=0.0)
+
+
+def _run(tmp, **params):
+    """Node run bag-only (mono: ns exact) when events are needed, else without any output."""
+    from evdnerf_ros.io.rosbag2 import read_events
+
+    bag = None
+    if params.pop("keep_events", False):
+        bag = Path(tempfile.mkdtemp(dir=tmp)) / "bag"
+        params.update(bag=str(bag), encoding="mono")
+    rep = run_node(("--ros-args", "--log-level", "warn"), overrides=params, dds=False)
+    ev = read_events(bag, EVENTS).events if bag else None
+    return rep, ev
+
+
+def _median_runs(tmp, repeats, **params):
+    reps = [_run(tmp, **params)[0] for _ in range(repeats)]
+    walls = [r.wall_seconds for r in reps]
+    r = reps[int(np.argsort(walls)[len(walls) // 2])]
+    return r, float(np.median(walls))
+
+
+def _net_images(ev, w, h, t0, t1, n=10):
+    edges = np.linspace(t0, t1, n + 1).astype(np.int64)
+    out = np.zeros((n, h, w), np.int64)
+    k = np.clip(np.searchsorted(edges, ev["t"], "right") - 1, 0, n - 1)
+    np.add.at(out, (k, ev["y"], ev["x"]), ev["p"].astype(np.int64))
+    return out
+
+
+def bench_resolution(tmp, quick):
+    rows = []
+    for (w, h) in ([(64, 64), (128, 128)] if quick else [(64, 64), (128, 128), (346, 260)]):
+        repeats = 1 if quick or w > 200 else 3
+        rep, wall = _median_runs(tmp, repeats, **SPAN, **{"camera.width": w, "camera.height": h})
+        rows.append({"width": w, "height": h, "rtf": rep.sim_seconds / wall, "wall_s": wall,
+                     "sim_s": rep.sim_seconds, "events": rep.events, "renders": rep.renders,
+                     "render_share": rep.render_seconds / rep.wall_seconds, "repeats": repeats})
+        print(f"{w}x{h}: RTF {rows[-1]['rtf']:.4f} ({wall:.2f} s wall for {rep.sim_seconds:.2f} s, {rep.renders} "
+              f"renders, {rep.events} events, rendering {rows[-1]['render_share']:.0%})", flush=True)
+    return rows
+
+
+def bench_tolerance(tmp, quick):
+    w = h = 64
+    base = {**SPAN, "camera.width": w, "camera.height": h, "keep_events": True}
+    ref_rep, ref = _run(tmp, **base, adaptive=False, render_rate_hz=20000.0)
+    t0, t1 = 0, int(SPAN["duration"] * 1e9)
+    ref_img = _net_images(ref, w, h, t0, t1)
+    curves = {"adaptive_tolerance": [], "adaptive_min_step": [], "fixed": []}
+    knobs = {"adaptive_tolerance": [0.5, 0.1, 0.02] if quick else [0.5, 0.2, 0.1, 0.05, 0.02],
+             "adaptive_min_step": [1_000_000, 200_000] if quick else [1_000_000, 500_000, 200_000, 100_000, 50_000],
+             "fixed": [500.0, 2000.0] if quick else [500.0, 1000.0, 2000.0, 5000.0, 10000.0]}
+    for mode, values in knobs.items():
+        for v in values:
+            extra = ({"adaptive": True, "tolerance_c": v} if mode == "adaptive_tolerance" else
+                     {"adaptive": True, "min_step_ns": v} if mode == "adaptive_min_step" else
+                     {"adaptive": False, "render_rate_hz": v})
+            rep, ev = _run(tmp, **base, **extra)
+            img = _net_images(ev, w, h, t0, t1)
+            err = float(np.abs(img - ref_img).sum() / max(np.abs(ref_img).sum(), 1))
+            cnt = abs(ev.size - ref.size) / max(ref.size, 1)
+            curves[mode].append({"knob": v, "wall_s": rep.wall_seconds, "rtf": rep.sim_seconds / rep.wall_seconds,
+                                 "renders": rep.renders, "events": int(ev.size), "image_l1_rel": err,
+                                 "count_rel": cnt})
+            print(f"{mode} {v:g}: {rep.wall_seconds:.2f} s (RTF {curves[mode][-1]['rtf']:.4f}), {rep.renders} renders, "
+                  f"image error {err:.3f}, count error {cnt:.3f}", flush=True)
+    return {"reference": {"rate_hz": 20000.0, "events": int(ref.size), "wall_s": ref_rep.wall_seconds,
+                          "renders": ref_rep.renders}, "curves": curves, "width": w, "height": h}
+
+
+def bench_leave_out(tmp, quick):
+    res = {}
+    size = {"camera.width": 64 if quick else 128, "camera.height": 64 if quick else 128}
+    reps = 1 if quick else 3
+    on, w_on = _median_runs(tmp, reps, **SPAN, **size)
+    off, w_off = _median_runs(tmp, reps, **SPAN, **size, leave_out=False)
+    res["scene_prefilter"] = {"wall_on_s": w_on, "wall_off_s": w_off, "speedup": w_off / w_on,
+                              "tests_on": on.rays_rendered, "tests_off": off.rays_rendered,
+                              "test_ratio": off.rays_rendered / max(on.rays_rendered, 1),
+                              "events_equal": on.events == off.events}
+    print(f"prefilter: x{w_off / w_on:.2f} faster, x{res['scene_prefilter']['test_ratio']:.1f} fewer tests", flush=True)
+    for name, span in (("moving", SPAN), ("static", {**SPAN, "scene_time_offset": 0.0, "duration": 0.1})):
+        ad, w_ad = _median_runs(tmp, reps, **span, **size)
+        # fixed at the adaptive sampler's finest step (min_step_ns = 100 us): the same time resolution
+        fx, w_fx = _median_runs(tmp, reps, **span, **size, adaptive=False, render_rate_hz=10000.0)
+        res[f"adaptive_{name}"] = {"wall_adaptive_s": w_ad, "wall_fixed_10khz_s": w_fx, "speedup": w_fx / w_ad,
+                                   "renders_adaptive": ad.renders, "renders_fixed": fx.renders,
+                                   "events_adaptive": ad.events, "events_fixed": fx.events}
+        print(f"adaptive ({name}): {ad.renders} renders vs {fx.renders} at 10 kHz, x{w_fx / w_ad:.2f} faster",
+              flush=True)
+    res["field_occupancy"] = bench_field(tmp)
+    return res
+
+
+def make_field_run(run_dir, *, half_empty=True):
+    """A randomly initialised planes field saved as a run (checkpoint with box and occupancy)."""
+    import torch
+
+    from evdnerf_ros.field import make_field
+    from evdnerf_ros.train.checkpoint import save_checkpoint
+    from evdnerf_ros.train.config import TrainConfig
+    from evdnerf_ros.train.trainer import CHECKPOINT_NAME
+
+    cfg = TrainConfig()
+    torch.manual_seed(0)
+    field = make_field(cfg.backbone, **cfg.field)
+    occ = torch.zeros((16, 16, 16), dtype=torch.bool)
+    occ[4:12, 4:12, 4:12] = True if half_empty else occ[4:12, 4:12, 4:12]
+    Path(run_dir).mkdir(parents=True, exist_ok=True)
+    save_checkpoint(Path(run_dir) / CHECKPOINT_NAME, field=field, optimizer=None, iteration=0,
+                    config=cfg.to_dict(), backbone=cfg.backbone, rng={}, box=[[-1, -1, -1], [1, 1, 1]],
+                    extra={"occupied": occ})
+    return run_dir
+
+
+def bench_field(tmp):
+    import yaml
+
+    run = make_field_run(Path(tmp) / "field_run")
+    from evdnerf_ros.sim.camera import look_at
+    from evdnerf_ros.io.messages import rotation_to_quaternion
+
+    T = look_at([0.0, -3.0, 0.5], [0.0, 0.0, 0.0])
+    q = rotation_to_quaternion(T[:3, :3]).tolist()
+    traj = Path(tmp) / "field_traj.yaml"
+    traj.write_text(yaml.safe_dump({"poses": [{"t_ns": 0, "position": T[:3, 3].tolist(), "orientation": q},
+                                              {"t_ns": 20_000_000, "position": T[:3, 3].tolist(), "orientation": q}]}))
+    common = {"run_dir": str(run), "trajectory": str(traj), "camera.width": 64, "camera.height": 64,
+              "adaptive": False, "render_rate_hz": 500.0, "realtime_factor": 0.0, "field_duration": 1.0}
+    on, _ = _run(tmp, **common)
+    off, _ = _run(tmp, **common, leave_out=False)
+    out = {"wall_on_s": on.wall_seconds, "wall_off_s": off.wall_seconds, "speedup": off.wall_seconds / on.wall_seconds,
+           "rays_on": on.rays_rendered, "rays_off": off.rays_rendered, "events_equal": on.events == off.events,
+           "note": "randomly initialised planes field, occupancy grid with 1/8 of the box occupied, 64x64, 11 renders"}
+    print(f"field occupancy mask: x{out['speedup']:.2f} faster, {on.rays_rendered} vs {off.rays_rendered} rays", flush=True)
+    return out
+
+
+# ----------------------------------------------------------------------------- DDS throughput
+
+READER = r"""
+import json, sys, time
+from evdnerf_ros.ros.qos import LOOPBACK_XML, profile
+from evdnerf_ros.ros.transport import DdsContext, DdsSubscription
+domain, fast, n_expected = int(sys.argv[1]), sys.argv[2] == "fast", int(sys.argv[3])
+ctx = DdsContext(domain, config=LOOPBACK_XML)
+sub = DdsSubscription(ctx, "/bench/events", "event_camera_msgs/msg/EventPacket", profile("default", 64), fast=fast)
+print("ready", flush=True)
+got = nbytes = 0; first = last = None; deadline = time.monotonic() + 120
+while time.monotonic() < deadline:
+    if not sub.wait(0.5):
+        if first is not None and time.monotonic() - last > 2.0:
+            break
+        continue
+    msgs = sub.take(64)
+    now = time.monotonic()
+    for m in msgs:
+        first = first or now
+        last = now
+        got += 1
+        nbytes += len(m.events)
+    if any(m.seq == n_expected - 1 for m in msgs):
+        break
+print(json.dumps({"received": got, "payload_bytes": nbytes, "seconds": (last - first) if got else 0.0}), flush=True)
+"""
+
+
+def dds_run(fast: bool, size: int, n: int, domain: int, cpus=None) -> dict:
+    from evdnerf_ros.io.typestore import ros2_typestore
+    from evdnerf_ros.ros.qos import LOOPBACK_XML, profile
+    from evdnerf_ros.ros.transport import DdsContext, DdsPublisher
+    from evdnerf_ros.io.messages import header
+
+    pre = ["taskset", "-c", cpus[1]] if cpus else []
+    reader = subprocess.Popen(pre + [sys.executable, "-c", READER, str(domain), "fast" if fast else "slow", str(n)],
+                              stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[1])
+    assert reader.stdout.readline().strip() == "ready"
+    ctx = DdsContext(domain, config=LOOPBACK_XML)
+    pub = DdsPublisher(ctx, "/bench/events", "event_camera_msgs/msg/EventPacket", profile("default", 64), fast=fast)
+    if not pub.wait_for_subscribers(1, 20):
+        raise RuntimeError("reader did not match")
+    T = ros2_typestore().types
+    payload = np.random.default_rng(0).integers(0, 256, size, dtype=np.uint8)
+    t0 = time.perf_counter()
+    for k in range(n):
+        msg = T["event_camera_msgs/msg/EventPacket"](header=header(k), height=260, width=346, seq=k, time_base=0,
+                                                     encoding="evt3", is_bigendian=False, events=payload)
+        pub.publish(msg)
+    pub.wait_for_acks(30.0)
+    send_s = time.perf_counter() - t0
+    out, _ = reader.communicate(timeout=180)
+    res = json.loads(out.strip().splitlines()[-1])
+    ctx.close()
+    res.update(sent=n, message_bytes=size, send_s=send_s,
+               mb_per_s=res["payload_bytes"] / res["seconds"] / 1e6 if res["seconds"] > 0 else None,
+               delivered=res["received"] / n)
+    return res
+
+
+def bench_dds(quick, cpus):
+    rows = []
+    domain = 100 + os.getpid() % 100
+    for size in ([1 << 16, 1 << 20]):
+        for fast in (True, False):
+            n = (200 if size == 1 << 20 else 2000) if fast else (10 if size == 1 << 20 else 100)
+            if quick:
+                n = max(5, n // 5)
+            runs = [dds_run(fast, size, n, domain + i, cpus) for i in range(1 if quick else 3)]
+            rates = [r["mb_per_s"] for r in runs if r["mb_per_s"]]
+            row = {"path": "raw CDR (fast)" if fast else "IdlStruct (slow)", "message_bytes": size, "messages": n,
+                   "mb_per_s_median": float(np.median(rates)) if rates else None,
+                   "delivered_median": float(np.median([r["delivered"] for r in runs])), "runs": runs}
+            rows.append(row)
+            print(f"DDS {row['path']:17s} {size >> 10:5d} KiB: {row['mb_per_s_median']:.1f} MB/s, "
+                  f"delivered {row['delivered_median']:.0%}", flush=True)
+    return rows
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="smaller sweep (smoke test)")
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    ap.add_argument("--dds-cpus", default="0,1", help="cores of the DDS writer,reader ('' = no pinning)")
+    ap.add_argument("--note", default="", help="free text stored in the JSON (e.g. machine load)")
+    ap.add_argument("--only", choices=["resolution", "tolerance", "leave_out", "dds"], action="append")
+    args = ap.parse_args(argv)
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cpus = args.dds_cpus.split(",") if args.dds_cpus else None
+    parts = args.only or ["resolution", "tolerance", "leave_out", "dds"]
+    result = {"benchmark": "publish", "quick": args.quick, "note": args.note,
+              "machine": {"cpus": os.cpu_count(), "affinity": sorted(os.sched_getaffinity(0)),
+                          "python": platform.python_version(), "numpy": np.__version__,
+                          "platform": platform.platform()}}
+    with tempfile.TemporaryDirectory() as tmp:
+        if "resolution" in parts:
+            result["rtf_vs_resolution"] = bench_resolution(tmp, args.quick)
+        if "tolerance" in parts:
+            result["error_vs_runtime"] = bench_tolerance(tmp, args.quick)
+        if "leave_out" in parts:
+            result["leave_out"] = bench_leave_out(tmp, args.quick)
+    if "dds" in parts:
+        result["dds_throughput"] = bench_dds(args.quick, cpus)
+    name = "publish_quick" if args.quick else "publish"
+    (out_dir / f"{name}.json").write_text(json.dumps(result, indent=2))
+    plot(result, out_dir / f"{name}.png")
+    print(f"wrote {out_dir / (name + '.json')} and .png")
+
+
+def plot(result, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 4, figsize=(21, 4.6))
+    rows = result.get("rtf_vs_resolution", [])
+    if rows:
+        ax[0].bar([f"{r['width']}x{r['height']}" for r in rows], [r["rtf"] for r in rows], color="tab:blue")
+        for i, r in enumerate(rows):
+            ax[0].text(i, r["rtf"], f"{r['rtf']:.3g}", ha="center", va="bottom")
+        ax[0].set_ylabel("real-time factor (trajectory s / wall s)")
+        ax[0].set_title("publisher RTF, fork swinging, adaptive 0.1 C")
+    err = result.get("error_vs_runtime")
+    if err:
+        for mode, mk, label in (("adaptive_tolerance", "o-", "adaptive, tolerance (C)"),
+                                ("adaptive_min_step", "^-", "adaptive, min step (us)"),
+                                ("fixed", "s--", "fixed rate (Hz)")):
+            c = err["curves"][mode]
+            ax[1].plot([p["wall_s"] for p in c], [p["image_l1_rel"] for p in c], mk, label=label)
+            for p in c:
+                k = p["knob"] / 1000 if mode == "adaptive_min_step" else p["knob"]
+                ax[1].annotate(f"{k:g}", (p["wall_s"], p["image_l1_rel"]), fontsize=7)
+        ax[1].set_xscale("log")
+        ax[1].set_yscale("log")
+        ax[1].set_xlabel("wall seconds for 0.1 s of events (64x64)")
+        ax[1].set_ylabel("event-image error vs 20 kHz reference (rel. L1)")
+        ax[1].set_title("error against run time (labels: the knob)")
+        ax[1].legend()
+    dds = result.get("dds_throughput", [])
+    if dds:
+        labels = [f"{r['path'].split()[0]}\n{r['message_bytes'] >> 10} KiB" for r in dds]
+        vals = [r["mb_per_s_median"] or 0 for r in dds]
+        ax[2].bar(labels, vals, color=["tab:green" if "fast" in r["path"] else "tab:red" for r in dds])
+        for i, v in enumerate(vals):
+            ax[2].text(i, v, f"{v:.0f}", ha="center", va="bottom")
+        ax[2].axhline(500, color="k", ls=":", lw=1)
+        ax[2].set_yscale("log")
+        ax[2].set_ylabel("MB/s (two processes, loopback)")
+        ax[2].set_title("DDS throughput: raw CDR vs IdlStruct")
+    lo = result.get("leave_out")
+    if lo:
+        items = [("screen-box\nprefilter", lo["scene_prefilter"]["speedup"]),
+                 ("adaptive steps\n(fork moving)", lo["adaptive_moving"]["speedup"]),
+                 ("adaptive steps\n(nothing moves)", lo["adaptive_static"]["speedup"]),
+                 ("field occupancy\nray mask", lo["field_occupancy"]["speedup"])]
+        ax[3].bar([k for k, _ in items], [v for _, v in items], color="tab:purple")
+        for i, (_, v) in enumerate(items):
+            ax[3].text(i, v, f"x{v:.2f}", ha="center", va="bottom")
+        ax[3].axhline(1.0, color="k", lw=1)
+        ax[3].set_yscale("log")
+        ax[3].set_ylabel("speed-up (wall time off / on)")
+        ax[3].set_title("leave-out switches (adaptive vs fixed at its finest step)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
