@@ -138,13 +138,14 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "-o", str(out), "--train-minutes", "0.1"]) == 0
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["views"] == 6 and min(summary["events_per_view"]) > 1000
+    assert summary["views"] == 7 and min(summary["events_per_view"]) > 1000
     assert all(v["bit_exact"] for v in summary["round_trips"].values())
     assert (out / "event_images.png").exists() and (out / "event_rates.png").exists()
     assert (out / "session" / "session.yaml").exists() and (out / "session" / "sync.png").exists()
     assert all(abs(e) <= 1.0 for e in summary["sync_error_us"].values())
-    assert summary["train_h5"]["views"] == 6 and summary["train_h5"]["dl_abs_sum_view0"] > 0
+    assert summary["train_h5"]["views"] == 7 and summary["train_h5"]["dl_abs_sum_view0"] > 0
     assert summary["training"]["iterations"] > 0 and np.isfinite(summary["training"]["val_events_psnr"])
+    assert np.isfinite(summary["training"]["moving_events_psnr"])
     assert (out / "run" / "eval_events.png").exists() and (out / "report" / "report.png").exists()
     assert main(["demo", "-o", str(out)]) == 2          # refuses to overwrite
     assert "already exists" in capsys.readouterr().err
