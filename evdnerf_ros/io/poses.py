@@ -29,7 +29,7 @@ import numpy as np
 import yaml
 
 from ..errors import InputError
-from .messages import check_rigid, pose_to_matrix, quaternion_to_rotation, stamp_to_ns
+from .messages import check_rigid, quaternion_to_rotation, stamp_to_ns
 
 POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped", "tf2_msgs/msg/TFMessage")
 QUAT_TOL = 1e-3
@@ -203,6 +203,3 @@ def matrix_extrinsics(values, *, what: str = "camera extrinsics") -> np.ndarray:
     return check_rigid(np.asarray(values, dtype=np.float64).reshape(4, 4) if np.size(values) == 16 else values,
                        what)
 
-
-__all__ = ["load_poses", "load_yaml_poses", "load_csv_poses", "load_bag_poses", "extrinsics",
-           "matrix_extrinsics", "check_times", "pose_to_matrix"]

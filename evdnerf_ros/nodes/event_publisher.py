@@ -109,20 +109,24 @@ class EventPublisher(Node):
     def __init__(self, argv=(), **kwargs):
         super().__init__(argv, **kwargs)
         p = self.params
+        if p["min_step_ns"] > p["max_step_ns"]:
+            raise InputError(f"min_step_ns {p['min_step_ns']} is larger than max_step_ns {p['max_step_ns']}")
+        self.scene = None
+        if not p["run_dir"]:
+            from ..sim.scene import load_scene
+
+            self.scene = load_scene(p["scene"], check_cameras=False)
         self.camera = self._camera()
+        if p["encoding"] in ("evt3", "evt2") and max(self.camera.width, self.camera.height) > 2048:
+            raise InputError(f"encoding {p['encoding']} carries at most 2048x2048 pixels; use encoding mono or array")
+        self.t0, self.t1, self.track, self.T_robot_cam = self._trajectory()
         self.source = self._source()
-        self.t0, self.t1, self.track = self._trajectory()
-        self.T_robot_cam = self._extrinsics()
         from ..sim.generator import EventGenerator
 
         self.generator = EventGenerator(
             self.camera.width, self.camera.height, c_pos=p["c_pos"], c_neg=p["c_neg"],
             threshold_sigma=p["threshold_sigma"], refractory_ns=p["refractory_ns"],
             shot_noise_rate_hz=p["shot_noise_hz"], leak_rate_hz=p["leak_rate_hz"], seed=p["seed"])
-        if p["encoding"] in ("evt3", "evt2") and max(self.camera.width, self.camera.height) > 2048:
-            raise InputError(f"encoding {p['encoding']} carries at most 2048x2048 pixels; use encoding mono or array")
-        if p["min_step_ns"] > p["max_step_ns"]:
-            raise InputError(f"min_step_ns {p['min_step_ns']} is larger than max_step_ns {p['max_step_ns']}")
         self.events_pub = self.create_publisher("~/events", "dvs_msgs/msg/EventArray" if p["encoding"] == "array"
                                                 else "event_camera_msgs/msg/EventPacket", p["qos"])
         self.info_pub = self.create_publisher("~/camera_info", "sensor_msgs/msg/CameraInfo", p["qos"])
@@ -135,12 +139,7 @@ class EventPublisher(Node):
         from ..sim.camera import PinholeCamera
 
         p = self.params
-        base = None
-        if not p["run_dir"]:
-            from ..sim.scene import load_scene
-
-            self._scene = load_scene(p["scene"], check_cameras=False)
-            base = self._scene.camera
+        base = self.scene.camera if self.scene is not None else None
         w = p["camera.width"] or (base.width if base else 0)
         h = p["camera.height"] or (base.height if base else 0)
         if not w or not h:
@@ -153,18 +152,9 @@ class EventPublisher(Node):
         fov = p["camera.fov_deg"] or (base.fov_x_deg if base else 40.0)
         return PinholeCamera.from_fov(w, h, fov)
 
-    def _source(self):
-        from .sources import FieldSource, SceneSource
-
-        p = self.params
-        if p["run_dir"]:
-            dur = int(round(p["field_duration"] * NS)) if p["field_duration"] else 0
-            self._field_args = (p["run_dir"], dur)
-            return None   # built once the trajectory span is known
-        return SceneSource(self._scene, self.camera, supersample=p["supersample"], leave_out=p["leave_out"])
-
     def _trajectory(self):
-        from ..io.poses import load_poses
+        """(t0, t1, PoseTrack of T_world_robot, T_robot_cam)."""
+        from ..io.poses import extrinsics, load_poses, matrix_extrinsics
         from ..sim.pose_track import PoseTrack
 
         p = self.params
@@ -174,35 +164,32 @@ class EventPublisher(Node):
                               child_frame=p["trajectory_child_frame"])
             track = PoseTrack(t, T, max_gap_ns=int(round(p["trajectory_max_gap"] * NS)), source=p["trajectory"])
             t0, t1 = track.span_ns
-        else:
-            if self.source is None:
-                raise InputError("a trained run needs a trajectory (bag, YAML or CSV of poses)")
-            T = self.source.default_pose()
-            t0, t1 = 0, dur or self.source.default_duration_ns()
+            if p["camera.matrix"]:
+                T_robot_cam = matrix_extrinsics(p["camera.matrix"], what="parameter 'camera.matrix' (T_robot_cam)")
+            else:
+                T_robot_cam = extrinsics(p["camera.xyz"], p["camera.rpy_deg"], p["camera.quat"] or None,
+                                         what="parameters 'camera.xyz' / 'camera.rpy_deg' / 'camera.quat'")
+        elif self.scene is None:
+            raise InputError("a trained run needs a trajectory (a bag, YAML or CSV of poses)")
+        else:      # a static camera at the scene's first ring view: that pose is the camera's own
+            T = self.scene.camera_poses("train")[0]
+            t0, t1 = 0, dur or int(self.scene.duration_ns)
             track = PoseTrack([t0, max(t1, t0 + 1)], [T, T], source="static camera")
-            self.T_static = T
+            T_robot_cam = np.eye(4)
         if dur:
             t1 = min(t1, t0 + dur)
         if t1 <= t0:
             raise InputError(f"nothing to publish: the time span [{t0}, {t1}] ns is empty")
-        if self.source is None:
-            run_dir, fdur = self._field_args
-            from .sources import FieldSource
+        return t0, t1, track, T_robot_cam
 
-            self.source = FieldSource(run_dir, self.camera, duration_ns=fdur or (t1 - t0),
-                                      leave_out=self.params["leave_out"])
-        return t0, t1, track
-
-    def _extrinsics(self):
-        from ..io.poses import extrinsics, matrix_extrinsics
+    def _source(self):
+        from .sources import FieldSource, SceneSource
 
         p = self.params
-        if not p["trajectory"]:
-            return np.eye(4)        # the static default pose is the camera's own
-        if p["camera.matrix"]:
-            return matrix_extrinsics(p["camera.matrix"], what="parameter 'camera.matrix' (T_robot_cam)")
-        return extrinsics(p["camera.xyz"], p["camera.rpy_deg"], p["camera.quat"] or None,
-                          what="parameters 'camera.xyz' / 'camera.rpy_deg' / 'camera.quat'")
+        if self.scene is not None:
+            return SceneSource(self.scene, self.camera, supersample=p["supersample"], leave_out=p["leave_out"])
+        duration = int(round(p["field_duration"] * NS)) or (self.t1 - self.t0)
+        return FieldSource(p["run_dir"], self.camera, duration_ns=duration, leave_out=p["leave_out"])
 
     def camera_pose(self, t_ns: int) -> np.ndarray:
         return self.track(t_ns) @ self.T_robot_cam
@@ -220,6 +207,18 @@ class EventPublisher(Node):
                           stamp_ns=stamp_ns)
         self.info_pub.publish_raw(ros2_typestore().serialize_cdr(msg, self.info_pub.msgtype), stamp_ns)
 
+    def _wait_for_subscribers(self, n_events: int, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        for pub, n in ((self.events_pub, n_events), (self.info_pub, 1)):
+            self.logger.info(f"waiting for {n} subscriber(s) on {pub.topic}")
+            while not pub.dds.wait_for_subscribers(n, 0.1):
+                if not self.ok():
+                    return
+                if time.monotonic() > deadline:
+                    self.logger.warn(f"{pub.topic}: only {pub.subscribers()} subscriber(s) after {timeout_s} s; "
+                                     "publishing anyway")
+                    break
+
     def run(self) -> PublishReport:
         from ..events.codecs import quantize_to_us
         from ..io.rosbag2 import EventMessageEncoder
@@ -227,14 +226,8 @@ class EventPublisher(Node):
 
         p = self.params
         rep = self.report
-        n_subs = p["wait_for_subscribers"]
-        if n_subs and self.dds is not None:
-            deadline = time.monotonic() + p["wait_timeout"]
-            for pub, n in ((self.events_pub, n_subs), (self.info_pub, 1)):
-                self.logger.info(f"waiting for {n} subscriber(s) on {pub.topic}")
-                if not pub.dds.wait_for_subscribers(n, max(0.0, deadline - time.monotonic())):
-                    self.logger.warn(f"{pub.topic}: only {pub.subscribers()} subscriber(s) after "
-                                     f"{p['wait_timeout']} s; publishing anyway")
+        if p["wait_for_subscribers"] and self.dds is not None:
+            self._wait_for_subscribers(p["wait_for_subscribers"], p["wait_timeout"])
 
         def sink(topic, msgtype, data, stamp):
             self.events_pub.publish_raw(data, stamp)

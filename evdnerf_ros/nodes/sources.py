@@ -28,12 +28,6 @@ class SceneSource:
         self.renderer = SceneRenderer(self.scene, camera, supersample, prefilter=leave_out)
         self.rays_total = 0
 
-    def default_duration_ns(self) -> int:
-        return int(self.scene.duration_ns)
-
-    def default_pose(self) -> np.ndarray:
-        return self.scene.camera_poses("train")[0]
-
     @property
     def rays_rendered(self) -> int:
         return int(self.renderer.stats.tests)
@@ -75,12 +69,6 @@ class FieldSource:
         self.rays_rendered = 0
         self._mask_cache = None
         self._torch = torch
-
-    def default_duration_ns(self) -> int:
-        return self.duration_ns
-
-    def default_pose(self):
-        raise InputError("a trained run has no default camera pose; give a trajectory")
 
     def _ray_mask(self, o, d, T):
         key = np.asarray(T, dtype=np.float64).tobytes()
