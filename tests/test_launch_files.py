@@ -137,7 +137,8 @@ def test_checker_catches_bad_launch_files(tmp_path):
 
 
 def test_parameter_yaml_sets_only_declared_parameters():
-    data = yaml.safe_load((ROOT / "config/event_publisher.yaml").read_text())
-    keys = set(_flatten(data["event_publisher"]["ros__parameters"]))
+    keys = set(load_params_file(ROOT / "config/event_publisher.yaml", "event_publisher", "/robot"))
     declared = declared_parameters(console_scripts()["event_publisher"])
     assert keys and keys <= declared
+    data = yaml.safe_load((ROOT / "config/event_publisher.yaml").read_text())
+    assert keys == set(_flatten(next(iter(data.values()))["ros__parameters"]))

@@ -73,11 +73,11 @@ PARAMETERS = [
     P("frame_id", "event_camera", "header.frame_id of events and camera info"),
     P("qos", "default", "QoS profile of the published topics (default = reliable, keep-last 10; sensor_data = "
       "best effort)", choices=("default", "sensor_data", "transient_local")),
-    P("camera_info_period", 1.0, "seconds between CameraInfo messages", min=1e-3),
+    P("camera_info_period", 1.0, "seconds of trajectory time between CameraInfo messages (also sent at once "
+      "when a new subscriber appears)", min=1e-3),
     P("bag", "", "also record into this rosbag2 (must not exist); empty: no bag", read_only=True),
     P("bag_storage", "mcap", "rosbag2 storage of the bag", choices=("mcap", "sqlite3"), read_only=True),
-    P("wait_for_subscribers", 0, "wait until this many subscribers match ~/events (and one ~/camera_info) "
-      "before starting", min=0),
+    P("wait_for_subscribers", 0, "wait until this many subscribers match ~/events before starting", min=0),
     P("wait_timeout", 10.0, "seconds to wait for subscribers", min=0.0),
 ]
 
@@ -207,17 +207,15 @@ class EventPublisher(Node):
                           stamp_ns=stamp_ns)
         self.info_pub.publish_raw(ros2_typestore().serialize_cdr(msg, self.info_pub.msgtype), stamp_ns)
 
-    def _wait_for_subscribers(self, n_events: int, timeout_s: float) -> None:
+    def _wait_for_subscribers(self, n: int, timeout_s: float) -> None:
+        pub = self.events_pub
         deadline = time.monotonic() + timeout_s
-        for pub, n in ((self.events_pub, n_events), (self.info_pub, 1)):
-            self.logger.info(f"waiting for {n} subscriber(s) on {pub.topic}")
-            while not pub.dds.wait_for_subscribers(n, 0.1):
-                if not self.ok():
-                    return
-                if time.monotonic() > deadline:
-                    self.logger.warn(f"{pub.topic}: only {pub.subscribers()} subscriber(s) after {timeout_s} s; "
-                                     "publishing anyway")
-                    break
+        self.logger.info(f"waiting for {n} subscriber(s) on {pub.topic}")
+        while not pub.dds.wait_for_subscribers(n, 0.1) and self.ok():
+            if time.monotonic() > deadline:
+                self.logger.warn(f"{pub.topic}: only {pub.subscribers()} subscriber(s) after {timeout_s} s; "
+                                 "publishing anyway")
+                return
 
     def run(self) -> PublishReport:
         from ..events.codecs import quantize_to_us
@@ -244,12 +242,15 @@ class EventPublisher(Node):
         wall0 = time.perf_counter()
         last_report = wall0
         next_info = self.t0
+        info_subs = 0
         t = self.t0
         while t < self.t1 and self.ok():
             tb = min(t + chunk, self.t1)
-            if t >= next_info:
+            subs = self.info_pub.subscribers()
+            if t >= next_info or subs > info_subs:     # periodically, and at once for a new subscriber
                 self._camera_info(t)
                 next_info = t + info_every
+            info_subs = subs
             events, st = simulate_renderer(
                 self.render, t, tb, self.generator, mode="adaptive" if p["adaptive"] else "fixed",
                 rate_hz=p["render_rate_hz"], tolerance_c=p["tolerance_c"],
