@@ -145,3 +145,52 @@ def test_signal_during_publishing_leaves_valid_bag(tmp_path, dds_env, sig):
     assert counts[INFO] >= 1 and counts[EVENTS] > 10
     ev = read_events(bag, EVENTS).events
     assert ev.size > 0 and np.all(np.diff(ev["t"]) >= 0)
+
+
+def _in_process_publisher(log, **params):
+    from evdnerf_ros.nodes.event_publisher import EventPublisher
+    from evdnerf_ros.ros.qos import LOOPBACK_XML
+
+    return EventPublisher((), overrides={"camera.width": 16, "camera.height": 16, "realtime_factor": 0.0,
+                                         "adaptive": False, "scene_time_offset": 0.15, **params},
+                          domain_id=int(os.environ["ROS_DOMAIN_ID"]), dds_config=LOOPBACK_XML, log_stream=log)
+
+
+def test_qos_mismatch_with_a_subscriber_is_warned(dds_env):
+    import io
+
+    from evdnerf_ros.ros.qos import LOOPBACK_XML, profile
+    from evdnerf_ros.ros.transport import DdsContext, DdsSubscription
+
+    ctx = DdsContext(int(dds_env["ROS_DOMAIN_ID"]), config=LOOPBACK_XML)
+    sub = DdsSubscription(ctx, EVENTS, "event_camera_msgs/msg/EventPacket", profile("default"))   # reliable
+    log = io.StringIO()
+    node = _in_process_publisher(log, qos="sensor_data", duration=0.02, wait_for_subscribers=1, wait_timeout=1.5)
+    with node:
+        rep = node.run()
+    text = log.getvalue()
+    assert rep.events > 0 and sub.take_raw() == []
+    assert "[WARN]" in text and f"topic {EVENTS}: a subscriber has incompatible QoS (RELIABILITY)" in text
+    assert "best_effort" in text and "publishing anyway" in text
+    ctx.close()
+
+
+def test_echo_shows_other_message_types(dds_env):
+    import io
+    import threading
+
+    log = io.StringIO()
+    node = _in_process_publisher(log, duration=0.03, chunk=0.01, camera_info_period=0.01, wait_for_subscribers=0)
+    lines = []
+    result = {}
+    th = threading.Thread(target=lambda: result.update(rep=run_echo(
+        INFO, "sensor_msgs/msg/CameraInfo", count=2, duration=20, print_fn=lines.append)))
+    th.start()
+    time.sleep(1.0)                       # let the echo's subscription be discovered first
+    with node:
+        node.run()
+    th.join(30)
+    rep = result["rep"]
+    assert rep.messages == 2 and rep.events == 0 and rep.msgtype == "sensor_msgs/msg/CameraInfo"
+    assert any(line.startswith("first message: ") and "CameraInfo(" in line and "width=16" in line for line in lines)
+    assert rep.size_min == rep.size_max > 300     # 9 + 9 + 12 + 5 doubles and the header

@@ -41,6 +41,22 @@ def _clayer():
     return ddspy_write, ddspy_take
 
 
+#: Domains configured in this process (Cyclone allows one configuration per domain id per process).
+_DOMAINS: dict[int, tuple[str, object]] = {}
+
+
+def _domain(Domain, domain_id: int, config: str):
+    have = _DOMAINS.get(domain_id)
+    if have is not None:
+        if have[0] != config:
+            raise TransportError(f"DDS domain {domain_id} is already configured differently in this process; use "
+                                 "one configuration per domain id")
+        return have[1]
+    dom = Domain(domain_id, config)
+    _DOMAINS[domain_id] = (config, dom)
+    return dom
+
+
 class DdsContext:
     """One DDS domain participant. ``domain_id`` / ``config`` default to the ROS environment."""
 
@@ -53,7 +69,7 @@ class DdsContext:
         self.domain_id = _qos.domain_id(env) if domain_id is None else int(domain_id)
         self.config = _qos.domain_config(env) if config is None else config
         try:
-            self._domain = Domain(self.domain_id, self.config) if self.config else None
+            self._domain = _domain(Domain, self.domain_id, self.config) if self.config else None
             self.participant = DomainParticipant(self.domain_id)
         except Exception as exc:  # noqa: BLE001 - DDSException and friends
             raise TransportError(f"DDS domain {self.domain_id} did not start: {exc}") from None
