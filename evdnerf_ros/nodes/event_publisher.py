@@ -92,8 +92,8 @@ class PublishReport:
     render_seconds: float = 0.0
     renders: int = 0
     frames_fed: int = 0
-    rays_total: int = 0
-    rays_rendered: int = 0
+    rays_total: int = 0          # render work without leave-out (scene: ray-primitive tests; field: rays)
+    rays_rendered: int = 0       # render work done (same unit)
     interrupted: bool = False
     rtf: float = 0.0
     topics: dict = field(default_factory=dict)

@@ -5,7 +5,9 @@ Leave-out (``leave_out=True``): the synthetic renderer tests each primitive only
 the rays inside its projected bounding box (``SceneRenderer(prefilter=True)``); the field
 renders only the rays that cross an occupied cell of the run's occupancy grid (or, without
 a grid, the scene box) — every other pixel is the background, exactly what the full
-render gives there. ``rays_rendered`` / ``rays_total`` count the saving.
+render gives there. ``rays_rendered`` / ``rays_total`` count the saving: for the synthetic
+scene in ray-primitive intersection tests (done / without leave-out: every ray against every
+primitive), for the field in rays.
 """
 
 from __future__ import annotations
