@@ -48,8 +48,8 @@ RUNS = {
                              (1, 4, 8)),
     "planes-no-region": (2.0, {"dynamic_region": False, "eval_every": 100}, 2, 2, (1,)),
     "planes-frames": (2.0, {"supervision": "frames", "eval_every": 150}, 4, 4, (1,)),
-    "dnerf": (60.0, {"backbone": "dnerf", "lr": 5e-4, "lr_warmup_iters": 10, "eval_every": 25,
-                     "checkpoint_every": 25, "log_every": 5}, 1, 1, (1,)),
+    "dnerf": (60.0, {"backbone": "dnerf", "lr": 5e-4, "lr_warmup_iters": 10, "eval_every": 100,
+                     "checkpoint_every": 100, "log_every": 5}, 1, 1, (1,)),
 }
 
 
