@@ -313,3 +313,16 @@ def test_field_source_occupancy_mask_saves_rays_not_pixels(tmp_path):
     rep, _ = publish(tmp_path, run_dir=str(tmp_path / "run"), trajectory=str(tmp_path / "t.yaml"),
                      field_duration=0.02, **{"camera.width": 12, "camera.height": 10})
     assert rep.renders == 21 and rep.rays_rendered < rep.rays_total
+
+
+def test_event_publisher_executable_help_and_errors(capsys):
+    from evdnerf_ros.nodes.event_publisher import PARAMETERS
+    from evdnerf_ros.nodes.event_publisher import main as exe
+
+    assert exe(["--help"]) == 0
+    text = capsys.readouterr().out
+    assert all(f"  {s.name} (" in text for s in PARAMETERS)
+    assert exe(["--ros-args", "-p", "encoding:=evt4"]) == 2
+    assert "parameter 'encoding': 'evt4' is not one of" in capsys.readouterr().err
+    assert exe(["stray", "--ros-args"]) == 2
+    assert "unexpected arguments ['stray']" in capsys.readouterr().err

@@ -288,6 +288,16 @@ class EventPublisher(Node):
         return rep
 
 
+def usage() -> str:
+    lines = ["usage: event_publisher --ros-args [-p name:=value] [--params-file FILE] [-r from:=to] "
+             "[-r __node:=NAME] [-r __ns:=NS] [--log-level LEVEL]", "",
+             "Publishes ~/events and ~/camera_info (DDS domain ROS_DOMAIN_ID; ROS_LOCALHOST_ONLY=1 for loopback).",
+             "", "parameters:"]
+    for spec in PARAMETERS:
+        lines.append(f"  {spec.name} ({spec.type_name()}, default {spec.default!r}): {spec.description}")
+    return "\n".join(lines)
+
+
 def run_node(argv=(), **kwargs) -> PublishReport:
     """Build, run and shut the node down (bag closed even on SIGINT / SIGTERM)."""
     node = EventPublisher(argv, **kwargs)
@@ -299,6 +309,9 @@ def run_node(argv=(), **kwargs) -> PublishReport:
 def main(argv=None) -> int:
     """Console script ``event_publisher`` (what ``ros2 run rig event_publisher`` starts)."""
     argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] in (["-h"], ["--help"]):
+        print(usage())
+        return 0
     try:
         run_node(argv)
     except EvdnerfError as exc:
