@@ -1,7 +1,18 @@
+import os
+
 import numpy as np
 import pytest
 
 from evdnerf_ros.events import make_events
+
+
+def pytest_configure(config):
+    """Under pytest-xdist every worker shares the cores: one torch thread each, or the
+    workers' thread pools oversubscribe the machine (a 24 s test took 126 s)."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        import torch
+
+        torch.set_num_threads(1)
 
 
 def random_events(rng, n, width=64, height=48, t0=0, span=1_000_000_000):

@@ -131,7 +131,6 @@ def test_schedules(train_set):
 
 # ------------------------------------------------------------------ training
 def test_tiny_run_loss_decreases(train_set):
-    torch.set_num_threads(2)
     tr = Trainer(train_set, small_config(), iters=150, log=lambda *_: None)
     losses = []
     while not tr.done():
