@@ -490,8 +490,8 @@ class EventMessageEncoder(_EventBagWriter):
         self._failed = None
         self._state = "open"
 
-    def _make_writer(self, tmp_path):  # pragma: no cover - never opened
-        raise NotImplementedError
+    def _make_writer(self, tmp_path):  # pragma: no cover - it starts open, so open() refuses
+        raise TypeError("EventMessageEncoder sends messages to its sink; it never writes a bag file")
 
     def _add_connection(self, topic, msgtype):
         return (topic, msgtype)
