@@ -37,16 +37,16 @@ def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: i
     for v in views:
         cam = camera_of(train_set.K(v), train_set.width, train_set.height)
         track = train_set.poses(v)
+        pose_at = None if track is None else PoseTrack(*track, source=f"{train_set.path}: view {v} poses")
         gts.append(train_set.log_change_stack(v, edges)[ks])
         for k in ks:
             tn = train_set.normalized_time(edges[k:k + 2])
-            if track is None:       # a static camera: both ends from shared samples
+            if pose_at is None:     # a static camera: both ends from shared samples
                 b0, b1 = render_image(field, cam, train_set.pose(v), [float(tn[0]), float(tn[1])],
                                       box, n_samples, near=near, far=far, background=background,
                                       occupancy=occupancy, dynamic=dynamic,
                                       changes_only=dynamic is not None)
             else:
-                pose_at = PoseTrack(*track, source=f"{train_set.path}: view {v} poses")
                 b0, b1 = (render_image(field, cam, pose_at(int(edges[k + j])), float(tn[j]), box,
                                        n_samples, near=near, far=far, background=background,
                                        occupancy=occupancy, dynamic=dynamic)
