@@ -112,7 +112,11 @@ def intensity_renders(field, train_set, view, *, box, n_samples: int, near: floa
 
 
 def static_views(train_set, views) -> list[str]:
-    return [v for v in views if train_set.poses(v) is None]
+    return [v for v in views if not train_set.info(v).moving]
+
+
+def moving_views(train_set, views) -> list[str]:
+    return [v for v in views if train_set.info(v).moving]
 
 
 def load_field(run_dir):
@@ -153,7 +157,7 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
     with TrainingSet(train_h5) as ts, torch.no_grad():
         splits = {"val": static_views(ts, ts.val_views)[:max_views],
                   "train": ts.train_views[:max_views],
-                  "moving": [v for v in ts.val_views if ts.poses(v) is not None][:max_views]}
+                  "moving": moving_views(ts, ts.val_views)[:max_views]}
         for split, views in splits.items():
             if not views:
                 continue

@@ -203,14 +203,15 @@ def _moving_poses(scene: Scene, task: ViewTask) -> tuple[np.ndarray, np.ndarray]
     return t, Ts
 
 
-def _pose_function(scene: Scene, task: ViewTask):
-    """t_ns -> T_world_cam of the view (a moving view interpolates its sampled poses, exactly
-    as a consumer of its pose topic would)."""
-    if task.arc_deg == 0.0:
+def _pose_function(task: ViewTask, track):
+    """t_ns -> T_world_cam of the view: its fixed pose, or (a moving view, ``track`` from
+    ``_moving_poses``) its sampled poses interpolated exactly as a consumer of its pose
+    topic would."""
+    if track is None:
         return lambda t: task.T_world_cam
     from .pose_track import PoseTrack
 
-    return PoseTrack(*_moving_poses(scene, task), source=f"view {task.name} trajectory")
+    return PoseTrack(*track, source=f"view {task.name} trajectory")
 
 
 def _run_views(scene, camera, tasks, options, out: Path, log) -> list[ViewResult]:
@@ -267,7 +268,8 @@ def _simulate_view(scene: Scene, camera: PinholeCamera, task: ViewTask,
 
     t0 = time.perf_counter()
     renderer = SceneRenderer(scene, camera, options.supersample)
-    pose_at = _pose_function(scene, task)
+    track = _moving_poses(scene, task) if task.arc_deg != 0.0 else None
+    pose_at = _pose_function(task, track)
     start, end = scene.start_ns, scene.end_ns
     span = scene.motion_span_ns()
     m0, m1 = (start, start) if span is None else (max(start, span[0]), min(end, span[1]))
@@ -318,11 +320,11 @@ def _simulate_view(scene: Scene, camera: PinholeCamera, task: ViewTask,
         bag.write(CAMERA_INFO_TOPIC, "sensor_msgs/msg/CameraInfo",
                   camera_info(camera.width, camera.height, _K(camera), stamp_ns=rec_start),
                   rec_start)
-        if task.arc_deg == 0.0:
+        if track is None:
             bag.write(POSE_TOPIC, "geometry_msgs/msg/PoseStamped",
                       pose_stamped(task.T_world_cam, rec_start, "world"), rec_start)
         else:
-            for t_scene, T in zip(*_moving_poses(scene, task)):
+            for t_scene, T in zip(*track):
                 stamp = int(t_scene) + task.clock_offset_ns
                 bag.write(POSE_TOPIC, "geometry_msgs/msg/PoseStamped",
                           pose_stamped(T, stamp, "world"), stamp)
