@@ -7,8 +7,11 @@ atomically, so a failed command leaves nothing half-written.
 from __future__ import annotations
 
 import argparse
+import errno
 import json
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from . import __version__
@@ -45,28 +48,39 @@ def _cmd_info(args) -> int:
 
 
 def _cmd_render_events(args) -> int:
+    from .atomic import check_output
     from .events import event_image, event_rate, plot_event_rate, save_png, time_slice
     from .io.event_files import read_event_file
+    from .limits import check_memory
     from .units import format_ns, parse_duration_ns
 
-    data = read_event_file(args.input, topic=args.topic)
-    ev = data.events
-    if ev.size == 0:
-        raise EvdnerfError(f"{args.input}: holds no events; nothing to render")
     start = parse_duration_ns(args.start, name="--start")
     window = parse_duration_ns(args.window, name="--window")
     if window <= 0:
         raise EvdnerfError(f"--window must be positive, got {args.window}")
+    rate_bin = parse_duration_ns(args.rate_bin, name="--rate-bin") if args.rate else None
+    if rate_bin is not None and rate_bin <= 0:
+        raise EvdnerfError(f"--rate-bin must be positive, got {args.rate_bin}")
+    output = Path(args.output)
+    rate_path = output.with_name(output.stem + "_rate.png")
+    # Outputs are checked before the input is read: nothing is decoded for an unwritable path.
+    for path in (output, rate_path) if args.rate else (output,):
+        check_output(path, overwrite=args.overwrite)
+    data = read_event_file(args.input, topic=args.topic)
+    ev = data.events
+    if ev.size == 0:
+        raise EvdnerfError(f"{args.input}: holds no events; nothing to render")
+    check_memory(data.width * data.height * args.upscale ** 2 * 4.0,
+                 f"--upscale {args.upscale} of a {data.width}x{data.height} image", "use a smaller --upscale")
     t0 = start if args.absolute else int(ev["t"][0]) + start
     sl = time_slice(ev, t0, t0 + window)
-    save_png(args.output, event_image(sl, data.width, data.height, saturation=args.saturation),
-             upscale=args.upscale)
-    print(f"{args.output}: {len(sl)} events in [{format_ns(t0)}, {format_ns(t0 + window)})")
+    rate = event_rate(ev["t"], rate_bin, name="--rate-bin") if args.rate else None   # sized before writing
+    save_png(output, event_image(sl, data.width, data.height, saturation=args.saturation),
+             upscale=args.upscale, overwrite=args.overwrite)
+    print(f"{output}: {len(sl)} events in [{format_ns(t0)}, {format_ns(t0 + window)})")
     if args.rate:
-        bin_ns = parse_duration_ns(args.rate_bin, name="--rate-bin")
-        rate_path = Path(args.output).with_name(Path(args.output).stem + "_rate.png")
-        plot_event_rate(rate_path, {Path(args.input).name: event_rate(ev["t"], bin_ns)},
-                        title=f"event rate ({args.rate_bin} bins)")
+        plot_event_rate(rate_path, {Path(args.input).name: rate},
+                        title=f"event rate ({args.rate_bin} bins)", overwrite=args.overwrite)
         print(f"{rate_path}: event-rate plot")
     return 0
 
@@ -109,7 +123,7 @@ def _cmd_sync(args) -> int:
                                ("trigger_topic", args.trigger_topic)) if v is not None}
     result = run_sync(args.session, bin_ns=parse_duration_ns(args.bin, name="--bin"),
                       method=args.method, reference_view=args.reference,
-                      refine=not args.no_refine, plot_path=args.plot,
+                      refine=not args.no_refine, plot_path=args.plot, overwrite=args.overwrite,
                       log=None if args.json else print, **extra)
     if args.json:
         print(json.dumps(result, indent=2, default=str))
@@ -172,7 +186,7 @@ def _cmd_eval(args) -> int:
 def _cmd_report(args) -> int:
     from .eval.figures import run_report
 
-    result = run_report(args.runs, Path(args.output))
+    result = run_report(args.runs, Path(args.output), overwrite=args.overwrite)
     print(Path(result["md"]).read_text())
     return 0
 
@@ -214,7 +228,7 @@ def _cmd_echo(args) -> int:
     from .nodes.echo import format_report, run_echo
 
     rep = run_echo(args.topic, args.type, qos=args.qos, depth=args.depth, count=args.count, duration=args.duration,
-                   idle=args.idle, png=args.png, npz=args.save_events,
+                   idle=args.idle, png=args.png, npz=args.save_events, overwrite=args.overwrite,
                    print_fn=(lambda *_: None) if args.json else print)
     if args.json:
         print(json.dumps(rep.as_dict(), indent=2))
@@ -224,7 +238,7 @@ def _cmd_echo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="evdnerf",
         description="EvDNeRF rig toolkit: event files and bags, (later) simulation, sync, "
                     "training and event publishing.")
@@ -240,8 +254,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "events-PSNR against wall time.")
     p.add_argument("-o", "--output", default="demo_output", help="output folder (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
-    p.add_argument("--train-minutes", type=float, default=2.0,
-                   help="training budget of the demo's field (default: %(default)s)")
+    p.add_argument("--train-minutes", type=number(float, low=0, low_open=True, high=10_080), default=2.0,
+                   help="training budget of the demo's field, in (0, 10080] (default: %(default)s)")
     p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("convert-events", help="convert events between RAW, npz, h5 and bags",
@@ -355,6 +369,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", help="aligned rate plot path (default SESSION/sync.png)")
     p.add_argument("--events-topic", help="event topic (default from session.yaml)")
     p.add_argument("--trigger-topic", help="servo START/DONE topic (default from session.yaml)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing --plot file (SESSION/sync.png, the default, is the session's own "
+                        "and always replaced; a folder never is)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=_cmd_sync)
 
@@ -383,8 +400,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-frames", action="store_true", help="leave out the blurred frames")
     p.add_argument("--compression", choices=["scaleoffset", "gzip"], default="scaleoffset",
                    help="lossless HDF5 filter: scaleoffset (fast) or gzip (smaller)")
-    p.add_argument("--n-windows", type=int, default=32,
-                   help="--format evdnerf: event frames per view (default %(default)s)")
+    p.add_argument("--n-windows", type=number(int, low=1, high=100_000), default=32,
+                   help="--format evdnerf: event frames per view, 1..100000 (default %(default)s)")
     p.add_argument("--event-time", choices=["normalized", "ns"], default="normalized",
                    help="--format evdnerf: time column of their event arrays")
     p.add_argument("--no-raw-events", action="store_true",
@@ -416,7 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
     budget.add_argument("--minutes", type=float, help="training time budget (whole run)")
     budget.add_argument("--iters", type=int, help="iteration budget (whole run)")
     p.add_argument("--init", help="start from this checkpoint's weights (fork -> knife transfer)")
-    p.add_argument("--eval-views", type=int, default=4,
+    p.add_argument("--eval-views", type=number(int, low=0, high=100_000), default=4,
                    help="validation views evaluated periodically (default %(default)s)")
     p.add_argument("--no-eval", action="store_true", help="no periodic validation")
     p.add_argument("--overwrite", action="store_true", help="start RUN afresh")
@@ -430,8 +447,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "finer; on validation and training views.")
     p.add_argument("run", help="run folder")
     p.add_argument("train_set", help="TRAIN.h5")
-    p.add_argument("--windows", type=int, help="window count (default: the trained one)")
-    p.add_argument("--max-views", type=int, help="evaluate at most this many views per split")
+    p.add_argument("--windows", type=number(int, low=1, high=100_000),
+                   help="window count, 1..100000 (default: the trained one)")
+    p.add_argument("--max-views", type=number(int, low=1), help="evaluate at most this many views per split")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=_cmd_eval)
 
@@ -441,6 +459,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "prediction floor dashed) and report.md (a table).")
     p.add_argument("runs", nargs="+", help="run folders")
     p.add_argument("-o", "--output", default=".", help="folder for report.png / report.md")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing report.png / report.md")
     p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser("publish", help="publish the events a robot-mounted camera would see (bag and/or DDS)",
@@ -455,10 +474,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", help="scene preset or YAML (default fork)")
     p.add_argument("--run", help="trained run folder instead of a synthetic scene")
     p.add_argument("--trajectory", help="robot poses: bag (Odometry, PoseStamped, /tf), .yaml or .csv")
-    p.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), help="camera size (default: the scene's)")
+    p.add_argument("--resolution", type=number(int, low=1, high=16_384), nargs=2, metavar=("W", "H"),
+                   help="camera size, 1..16384 each (default: the scene's)")
     p.add_argument("--encoding", choices=["evt3", "evt2", "mono", "array"], help="event message (default evt3)")
-    p.add_argument("--duration", type=float, help="seconds to publish (default: all)")
-    p.add_argument("--realtime-factor", type=float,
+    p.add_argument("--duration", type=number(float, low=0, low_open=True), help="seconds to publish (default: all)")
+    p.add_argument("--realtime-factor", type=number(float, low=0, high=1e6),
                    help="1 = real time, 0 = as fast as possible (default 0 here unless --params-file; "
                         "1 for event_publisher)")
     p.add_argument("-p", "--param", action="append", metavar="NAME=VALUE", help="any node parameter (repeatable)")
@@ -475,13 +495,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="message type (default %(default)s; e.g. dvs_msgs/msg/EventArray)")
     p.add_argument("--qos", choices=["default", "sensor_data", "transient_local"], default="default",
                    help="subscriber QoS profile (default %(default)s: reliable)")
-    p.add_argument("--depth", type=int, default=1000,
+    p.add_argument("--depth", type=number(int, low=1, high=1_000_000), default=1000,
                    help="subscriber history (keep-last) depth; deep so a slow start loses nothing (default %(default)s)")
-    p.add_argument("--count", type=int, default=0, help="stop after this many messages")
-    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds")
-    p.add_argument("--idle", type=float, default=0.0, help="stop when nothing arrives for this many seconds")
+    p.add_argument("--count", type=number(int, low=0), default=0, help="stop after this many messages (0: no limit)")
+    p.add_argument("--duration", type=number(float, low=0), default=0.0, help="stop after this many seconds (0: no limit)")
+    p.add_argument("--idle", type=number(float, low=0), default=0.0,
+                   help="stop when nothing arrives for this many seconds, counted from the start "
+                        "until the first message (0: no limit)")
     p.add_argument("--png", help="write the event image of everything received")
     p.add_argument("--save-events", help="write the decoded events (.npz: t, x, y, p, width, height)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing --png / --save-events files")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_cmd_echo)
 
@@ -503,14 +526,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--window", required=True, help="window length, e.g. 10ms")
     p.add_argument("-o", "--output", required=True, help="PNG path")
     p.add_argument("--absolute", action="store_true", help="--start is an absolute time")
-    p.add_argument("--saturation", type=int, default=1,
-                   help="net event count drawn at full colour (default %(default)s)")
-    p.add_argument("--upscale", type=int, default=1,
-                   help="repeat each pixel this many times for viewing (default %(default)s)")
+    p.add_argument("--saturation", type=number(int, low=1), default=1,
+                   help="net event count drawn at full colour, >= 1 (default %(default)s)")
+    p.add_argument("--upscale", type=number(int, low=1, high=64), default=1,
+                   help="repeat each pixel this many times for viewing, 1..64 (default %(default)s)")
     p.add_argument("--rate", action="store_true",
                    help="also plot the event rate of the whole recording (<output>_rate.png)")
     p.add_argument("--rate-bin", default="1ms", help="rate histogram bin (default %(default)s)")
     p.add_argument("--topic", help=TOPIC_HELP)
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace existing PNG files at the output paths (never a folder)")
     p.set_defaults(func=_cmd_render_events)
 
     # Plugins (e.g. rig's `flash` and `servo`): entry points `evdnerf.commands`, each a
@@ -522,14 +547,78 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the toolkit's error contract: one line, exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"evdnerf: error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def number(kind=float, *, low=None, high=None, low_open=False):
+    """An argparse type: a finite number of `kind` in the documented range (limits.check_number)."""
+    from .limits import check_number
+
+    def parse(text):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'a whole number' if kind is int else 'a number'}, "
+                                             f"got {text!r}") from None
+        try:
+            return check_number(value, "value", low=low, high=high, low_open=low_open)
+        except EvdnerfError as exc:
+            raise argparse.ArgumentTypeError(str(exc).removeprefix("value: ")) from None
+
+    parse.__name__ = kind.__name__          # argparse names the type in its messages
+    return parse
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, delivered like Ctrl-C so every `finally` and cleanup handler runs."""
+
+
+def _on_sigterm(signum, frame):
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)   # one clean-up; a second TERM must not cut it short
+    raise Terminated()
+
+
+def os_error_message(exc: OSError) -> str:
+    """One line for an OSError: the path, what went wrong, and what would fix it."""
+    where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
+    what = exc.strerror or str(exc)
+    hint = {errno.ENOSPC: "free some space or write elsewhere",
+            errno.EDQUOT: "free some space or write elsewhere",
+            errno.EFBIG: "the file is larger than this system allows; write elsewhere",
+            errno.EROFS: "the file system is read-only; write elsewhere",
+            errno.EACCES: "check the permissions or choose another path",
+            errno.EPERM: "check the permissions or choose another path",
+            errno.ENOENT: "check the path",
+            errno.EISDIR: "give a file path, not a folder",
+            errno.ENOTDIR: "a part of the path is a file, not a folder"}.get(exc.errno)
+    return f"{where + ': ' if where else ''}{what}" + (f"; {hint}" if hint else "")
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return args.func(args)
     except EvdnerfError as exc:
         print(f"evdnerf: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        if isinstance(exc, BrokenPipeError):         # `evdnerf info x | head`: not an error
+            return 0
+        print(f"evdnerf: error: {os_error_message(exc)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("evdnerf: error: out of memory; use a smaller input, window or resolution", file=sys.stderr)
+        return 2
+    except Terminated:
+        print("evdnerf: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("evdnerf: interrupted", file=sys.stderr)
         return 130

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_output
+from ..atomic import atomic_output, check_output
 from ..errors import InputError
 from ..events.images import signed_to_rgb
 from ..events.rate import save_figure
@@ -162,7 +162,7 @@ def plot_runs(run_dirs, path, *, title: str = "validation events-PSNR against wa
     return _plot(_load_all(run_dirs), path, title)
 
 
-def _plot(runs: list[dict], path, title: str) -> Path:
+def _plot(runs: list[dict], path, title: str, *, overwrite: bool = True) -> Path:
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 4))
     for i, r in enumerate(runs):
@@ -176,7 +176,7 @@ def _plot(runs: list[dict], path, title: str) -> Path:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    return save_figure(fig, path)
+    return save_figure(fig, path, overwrite=overwrite)
 
 
 def _table(summaries: list[dict]) -> str:
@@ -194,18 +194,26 @@ def markdown_table(run_dirs) -> str:
     return _table([_summary(r) for r in _load_all(run_dirs)])
 
 
-def run_report(run_dirs, out_dir) -> dict:
-    """Write OUT/report.png and OUT/report.md (atomically); return paths and per-run summaries."""
-    runs = _load_all(run_dirs)
+def run_report(run_dirs, out_dir, *, overwrite: bool = False) -> dict:
+    """Write OUT/report.png and OUT/report.md (atomically); return paths and per-run summaries.
+
+    Existing report files are replaced only with `overwrite` (and never a folder of that name).
+    """
     out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"{out_dir}: exists and is not a folder; give a folder for report.png / report.md")
+    png, md = out_dir / "report.png", out_dir / "report.md"
+    if out_dir.is_dir():
+        for path in (png, md):
+            check_output(path, overwrite=overwrite)
+    runs = _load_all(run_dirs)
     out_dir.mkdir(parents=True, exist_ok=True)
     summaries = [_summary(r) for r in runs]
-    png = _plot(runs, out_dir / "report.png", "validation events-PSNR against wall time")
-    md = out_dir / "report.md"
+    _plot(runs, png, "validation events-PSNR against wall time", overwrite=overwrite)
     text = ("# Events-PSNR against wall time\n\n"
             "![events-PSNR against wall time](report.png)\n\n"
             "Solid: validation events-PSNR; dashed: the all-zero-prediction floor.\n\n"
             + _table(summaries))
-    with atomic_output(md, overwrite=True) as tmp:
+    with atomic_output(md, overwrite=overwrite) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return {"png": str(png), "md": str(md), "runs": summaries}

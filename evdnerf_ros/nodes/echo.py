@@ -89,7 +89,16 @@ class Echo(Node):
         self.msgtype = msgtype
 
     def run(self, *, count: int = 0, duration: float = 0.0, idle: float = 0.0, png=None, npz=None,
-            print_fn=print, keep_events: bool = True) -> EchoReport:
+            overwrite: bool = False, print_fn=print, keep_events: bool = True) -> EchoReport:
+        """Listen until `count` messages, `duration` seconds, or `idle` seconds without a message
+        (counted from the start while none has come), or SIGINT / SIGTERM.
+
+        The output paths are checked before listening, so a bad path costs no recording."""
+        from ..atomic import check_output
+
+        for path in (png, npz):
+            if path:
+                check_output(path, overwrite=overwrite)
         from ..io.rosbag2 import BagMessage, _TopicDecoder
 
         is_events = self.msgtype in (EVENT_PACKET, DVS_EVENT_ARRAY)
@@ -103,7 +112,7 @@ class Echo(Node):
             now = time.monotonic()
             if duration and now - t_start >= duration:
                 break
-            if idle and t_last is not None and now - t_last >= idle:
+            if idle and now - (t_start if t_last is None else t_last) >= idle:
                 break
             if count and rep.messages >= count:
                 break
@@ -160,12 +169,12 @@ class Echo(Node):
             if png and rep.width:
                 from ..events import event_image, save_png
 
-                save_png(png, event_image(ev, rep.width, rep.height))
+                save_png(png, event_image(ev, rep.width, rep.height), overwrite=overwrite)
                 rep.png = str(png)
             if npz:
                 from ..atomic import atomic_output
 
-                with atomic_output(npz, overwrite=True) as tmp:
+                with atomic_output(npz, overwrite=overwrite) as tmp:
                     with open(tmp, "wb") as f:
                         np.savez(f, t=ev["t"], x=ev["x"], y=ev["y"], p=ev["p"], width=rep.width, height=rep.height)
                 rep.npz = str(npz)

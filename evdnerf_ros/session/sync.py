@@ -109,6 +109,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..atomic import check_output
 from ..events.rate import event_rate, plot_event_rate, save_figure
 from .layout import load_session, session_topics, write_session_yaml
 
@@ -128,6 +129,7 @@ class SyncOptions:
     reference_view: str | None = None     # None: the first training view
     refine: bool = True                   # sub-bin refinement by cross-correlation
     plot_path: str | Path | None = None   # None: <session>/sync.png
+    overwrite: bool = False               # replace an existing plot_path file (<session>/sync.png always is)
     events_topic: str | None = None       # None: session.yaml camera.topics.events
     trigger_topic: str | None = None      # None: session.yaml servo.trigger
     trigger_id: int | None = None         # EXT_TRIGGER channel (None: any)
@@ -444,7 +446,7 @@ def load_view(view, session, options: SyncOptions, ev_topic: str, tr_topic: str)
         t = ev["t"][keep]
     else:
         t = ev["t"].copy()
-    edges, counts = event_rate(t, options.bin_ns, *span)
+    edges, counts = event_rate(t, options.bin_ns, *span, name="--bin")
     n = max(1, -(-int(options.sustain_ns) // int(options.bin_ns)))
     quiet = max(1, -(-int(options.quiet_ns) // int(options.bin_ns)))
     onset, reason = detect_onset(counts, edges, k=options.k, floor_z=options.floor_z, sustain_bins=n,
@@ -511,6 +513,9 @@ def sync_session(root, options: SyncOptions = SyncOptions(), *, log=None) -> Syn
     options.check()
     say = log or (lambda *_: None)
     root = Path(root)
+    # The plot path is checked before any work; the session's own sync.png is replaced on a re-run.
+    plot = Path(options.plot_path) if options.plot_path is not None else root / "sync.png"
+    check_output(plot, overwrite=options.overwrite or plot == root / "sync.png")
     session = load_session(root)
     ev_topic, tr_topic = session_topics(session, options.events_topic, options.trigger_topic)
     if options.reference_view is not None:
@@ -640,7 +645,6 @@ def sync_session(root, options: SyncOptions = SyncOptions(), *, log=None) -> Syn
         "software_version": __version__,
     }
 
-    plot = Path(options.plot_path) if options.plot_path is not None else root / "sync.png"
     plot_aligned(plot, views, records, options, ref.name)
     data = dict(session.data)
     new_views = []
@@ -660,7 +664,8 @@ def sync_session(root, options: SyncOptions = SyncOptions(), *, log=None) -> Syn
 
 def plot_aligned(path, views: list[ViewData], records: dict, options: SyncOptions, ref_name: str) -> Path:
     """Two panels: every view's rate curve on the common time axis, and a zoom on the origin
-    (fine bins, each curve scaled to its own maximum)."""
+    (fine bins, each curve scaled to its own maximum). Replaces a file at `path` only after
+    sync_session checked that it may."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -696,10 +701,10 @@ def plot_aligned(path, views: list[ViewData], records: dict, options: SyncOption
 
 def run_sync(session_dir, *, bin_ns: int = 1_000_000, method: str = "auto",
              reference_view: str | None = None, refine: bool = True, plot_path=None,
-             log=None, **options) -> dict:
+             overwrite: bool = False, log=None, **options) -> dict:
     """The `evdnerf sync SESSION` entry point: sync, write, and return a JSON-able summary."""
     opts = replace(SyncOptions(), bin_ns=int(bin_ns), method=method, reference_view=reference_view,
-                   refine=bool(refine), plot_path=plot_path, **options)
+                   refine=bool(refine), plot_path=plot_path, overwrite=bool(overwrite), **options)
     res = sync_session(session_dir, opts, log=log)
     return {"session": str(res.root), "session_yaml": str(res.session_yaml), "plot": str(res.plot),
             "sync": res.summary, "views": res.views}
