@@ -83,8 +83,17 @@ def atomic_output(path, *, overwrite: bool = False, directory: bool = False) -> 
             check_output(path, overwrite=True, directory=directory)   # still ours?
             shutil.rmtree(path) if directory else path.unlink()
         _publish(tmp, path, no_clobber=not overwrite)
+    except OSError as exc:
+        name_output_error(exc, path)
+        raise
     finally:
         shutil.rmtree(tmp_dir, ignore_errors=True)
+
+
+def name_output_error(exc: BaseException, path) -> None:
+    """A write through a file object fails without naming the file: name the output it was for."""
+    if isinstance(exc, OSError) and exc.filename is None:
+        exc.filename = str(path)
 
 
 def remove_stale_partials(parent: Path, name: str) -> list[Path]:

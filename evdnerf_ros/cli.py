@@ -598,6 +598,12 @@ def os_error_message(exc: OSError) -> str:
     return f"{where + ': ' if where else ''}{what}" + (f"; {hint}" if hint else "")
 
 
+def _fail(message: str) -> int:
+    """The one error line (messages quoting a parser's multi-line report are folded) and exit 2."""
+    print("evdnerf: error: " + " ".join(message.split()), file=sys.stderr)
+    return 2
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -606,16 +612,13 @@ def main(argv=None) -> int:
     try:
         return args.func(args)
     except EvdnerfError as exc:
-        print(f"evdnerf: error: {exc}", file=sys.stderr)
-        return 2
+        return _fail(str(exc))
     except OSError as exc:
         if isinstance(exc, BrokenPipeError):         # `evdnerf info x | head`: not an error
             return 0
-        print(f"evdnerf: error: {os_error_message(exc)}", file=sys.stderr)
-        return 2
+        return _fail(os_error_message(exc))
     except MemoryError:
-        print("evdnerf: error: out of memory; use a smaller input, window or resolution", file=sys.stderr)
-        return 2
+        return _fail("out of memory; use a smaller input, window or resolution")
     except Terminated:
         print("evdnerf: terminated", file=sys.stderr)
         return 143
