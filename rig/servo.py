@@ -5,7 +5,11 @@ waits for the firmware (an Uno resets when the port opens), checks the protocol 
 with ``HELLO``, and then sends one command at a time, tagged ``@<seq>`` so a late reply to
 an earlier, timed-out command can never be taken for the current one.  A background thread
 reads every line: tagged replies go to the waiting command, ``START`` / ``DONE`` /
-``STOPPED`` / ``BOOT`` reports go to an event queue with their host receive time.
+``STOPPED`` / ``BOOT`` reports go to an event queue with their host receive time.  An
+untagged ``ERR`` (the firmware could not read the tag of a garbled line) answers the command
+waiting at once, never a timeout.  Arguments are range-checked against the firmware's limits
+before anything is sent (``ServoInputError``, an InputError naming the argument), and
+malformed replies or noise from the device end in ``ServoProtocolError``, never a traceback.
 
 Device time is the firmware's ``micros()`` (uint32, unwrapped here).  ``sync_clock()`` sends
 timestamped pings and fits ``host_ns = offset_ns + scale * device_us`` by least squares
@@ -15,19 +19,32 @@ timestamped pings and fits ``host_ns = offset_ns + scale * device_us`` by least 
 from __future__ import annotations
 
 import itertools
+import math
+import os
 import queue
+import stat
 import threading
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from evdnerf_ros.errors import EvdnerfError
+from evdnerf_ros.errors import EvdnerfError, InputError
+from evdnerf_ros.limits import check_number
 from evdnerf_ros.sim.servo_profile import RunProfile
 
 PROTOCOL_VERSION = 1
 FIRMWARE_NAME = "rig_servo"
 BAUDRATE = 115200
+
+# The firmware's ranges (firmware/PROTOCOL.md); checked here before anything is sent.
+ANGLE_RANGE = (0, 180)              # degrees, whole millidegrees
+DURATION_MS_RANGE = (1, 65535)
+SPEED_DPS_RANGE = (1, 6000)
+PULSE_US_RANGE = (400, 2600)
+MAX_SEGMENTS = 8
+TAG_MODULO = 1 << 32                # tags are @0..4294967295
+MAX_QUEUED_EVENTS = 10_000          # unread START/DONE/... reports kept (oldest dropped)
 
 
 class ServoError(EvdnerfError):
@@ -46,12 +63,22 @@ class ServoProtocolError(ServoError):
     """The device does not speak this protocol (wrong firmware, wrong version, bad reply)."""
 
 
-class ServoCommandError(ServoError):
-    """The firmware answered ERR; ``code`` is its error code (BUSY, OUT_OF_RANGE, ...)."""
+class ServoInputError(ServoError, InputError):
+    """An argument outside the firmware's range; raised before anything is sent."""
 
-    def __init__(self, command: str, code: str, reason: str):
-        super().__init__(f"servo refused `{command}`: {code} {reason}".rstrip())
-        self.command, self.code, self.reason = command, code, reason
+
+class ServoCommandError(ServoError):
+    """The firmware answered ERR; ``code`` is its error code (BUSY, OUT_OF_RANGE, ...).
+
+    ``untagged`` marks an ERR without a tag: the firmware could not read the command's tag
+    (the line arrived garbled or bytes were lost), so it answered the line as a whole.
+    """
+
+    def __init__(self, command: str, code: str, reason: str, untagged: bool = False):
+        why = (" (reply without its tag: the line reached the firmware garbled; nothing was "
+               "executed)" if untagged else "")
+        super().__init__(f"servo refused `{command}`: {code} {reason}".rstrip() + why)
+        self.command, self.code, self.reason, self.untagged = command, code, reason, untagged
 
 
 @dataclass(frozen=True)
@@ -115,15 +142,115 @@ class _Pending:
     event: threading.Event = field(default_factory=threading.Event)
     line: str | None = None
     recv_ns: int = 0
+    untagged: bool = False
+
+
+def _checked(value, name, **kw):
+    try:
+        return check_number(value, name, **kw)
+    except InputError as exc:
+        raise ServoInputError(str(exc)) from None
+
+
+def check_angle(value, name: str = "angle") -> float:
+    """A finite angle in 0..180 deg with at most 3 decimals (the firmware's whole mdeg)."""
+    lo, hi = ANGLE_RANGE
+    value = float(_checked(value, f"{name} (degrees)", low=lo, high=hi))
+    if abs(value * 1000 - round(value * 1000)) > 1e-6:
+        raise ServoInputError(f"{name}: at most 3 decimals (whole millidegrees), got {value!r}")
+    return round(value * 1000) / 1000
+
+
+def check_duration_ms(value, name: str = "duration") -> int:
+    lo, hi = DURATION_MS_RANGE
+    return int(_checked(value, f"{name} (ms)", low=lo, high=hi, integer=True))
+
+
+def check_limits(limits: "Limits", name: str = "limits") -> "Limits":
+    """The firmware's SET LIMITS ranges: 0 <= min < max <= 180, speed 1..6000,
+    400 <= pulse_min < pulse_max <= 2600."""
+    lo = check_angle(limits.min_deg, f"{name} MIN_DEG")
+    hi = check_angle(limits.max_deg, f"{name} MAX_DEG")
+    if not lo < hi:
+        raise ServoInputError(f"{name}: MIN_DEG {lo} must be below MAX_DEG {hi}")
+    speed = int(_checked(limits.max_speed_dps, f"{name} MAX_SPEED_DPS",
+                         low=SPEED_DPS_RANGE[0], high=SPEED_DPS_RANGE[1], integer=True))
+    pmin, pmax = (int(_checked(v, f"{name} {n}", low=PULSE_US_RANGE[0],
+                               high=PULSE_US_RANGE[1], integer=True))
+                  for v, n in ((limits.pulse_min_us, "PULSE_MIN_US"),
+                               (limits.pulse_max_us, "PULSE_MAX_US")))
+    if not pmin < pmax:
+        raise ServoInputError(f"{name}: PULSE_MIN_US {pmin} must be below PULSE_MAX_US {pmax}")
+    return Limits(lo, hi, speed, pmin, pmax)
+
+
+def check_profile(start_deg, segments, name: str = "profile") -> RunProfile:
+    """A RUN profile the firmware accepts: start and segment angles 0..180 deg (3 decimals),
+    1..8 segments of 1..65535 ms."""
+    segments = list(segments)
+    if not 1 <= len(segments) <= MAX_SEGMENTS:
+        raise ServoInputError(f"{name}: {len(segments)} segments; the firmware takes 1.."
+                              f"{MAX_SEGMENTS} (angle, ms) pairs")
+    start = check_angle(start_deg, f"{name} start angle")
+    segs = tuple((check_angle(a, f"{name} segment {k + 1} angle"),
+                  check_duration_ms(ms, f"{name} segment {k + 1} duration"))
+                 for k, (a, ms) in enumerate(segments))
+    return RunProfile(start_deg=start, segments=segs)
 
 
 def _deg(x: float) -> str:
     """Degrees with at most 3 decimals, as the firmware parses them."""
-    mdeg = round(float(x) * 1000)
+    try:
+        mdeg = round(float(x) * 1000)
+    except (TypeError, ValueError, OverflowError):
+        raise ServoInputError(f"angle {x!r}: expected a finite number of degrees") from None
     if abs(float(x) * 1000 - mdeg) > 1e-6:
-        raise ServoError(f"angle {x} deg: the firmware takes whole millidegrees")
+        raise ServoInputError(f"angle {x} deg: the firmware takes whole millidegrees")
     s = f"{mdeg / 1000:.3f}".rstrip("0").rstrip(".")
     return s if s not in ("-0", "") else "0"
+
+
+def _finite(word: str) -> float:
+    v = float(word)
+    if not math.isfinite(v):
+        raise ValueError(word)
+    return v
+
+
+def _u32(word: str) -> int:
+    if not (word.isascii() and word.isdigit()) or int(word) >= TAG_MODULO:
+        raise ValueError(word)
+    return int(word)
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+_PORT_HINT = ("check the cable and the port name (ls /dev/ttyACM* /dev/ttyUSB*), your access "
+              "(group dialout), or use --virtual")
+
+
+def _check_port(port: str) -> None:
+    """Name the usual mistakes before pyserial does it in its own words."""
+    if not port:
+        raise ServoPortError(f"servo port: empty name; {_PORT_HINT}")
+    try:
+        st = os.stat(port)
+    except FileNotFoundError:
+        raise ServoPortError(f"{port}: no such serial port; {_PORT_HINT}") from None
+    except OSError as exc:
+        raise ServoPortError(f"{port}: cannot open the servo port: {exc.strerror}; "
+                             f"{_PORT_HINT}") from None
+    if not stat.S_ISCHR(st.st_mode):
+        kind = "a folder" if stat.S_ISDIR(st.st_mode) else "a regular file" \
+            if stat.S_ISREG(st.st_mode) else "not a character device"
+        raise ServoPortError(f"{port}: not a serial device ({kind}); give the Arduino's port, "
+                             "e.g. /dev/ttyACM0, or use --virtual")
+    if not os.access(port, os.R_OK | os.W_OK):
+        raise ServoPortError(f"{port}: permission denied; add yourself to the group that owns "
+                             "it (usually dialout: sudo usermod -aG dialout $USER, then log in "
+                             "again)")
 
 
 class ServoClient:
@@ -133,16 +260,18 @@ class ServoClient:
                  retries: int = 2, boot_timeout: float = 4.0, open_serial=None):
         self.port_name = port
         self.baudrate = baudrate
-        self.timeout = timeout
-        self.retries = retries
-        self.boot_timeout = boot_timeout
+        self.timeout = float(_checked(timeout, "servo timeout (s)", low=0, low_open=True,
+                                      high=3600))
+        self.retries = int(_checked(retries, "servo retries", low=0, high=100, integer=True))
+        self.boot_timeout = float(_checked(boot_timeout, "servo boot timeout (s)", low=0,
+                                           low_open=True, high=3600))
         self._open_serial = open_serial
         self._ser = None
         self._seq = itertools.count(1)
         self._pending: dict[int, _Pending] = {}
         self._lock = threading.Lock()          # one command at a time
         self._plock = threading.Lock()         # pending table
-        self._events: queue.Queue[Event] = queue.Queue()
+        self._events: queue.Queue[Event] = queue.Queue(maxsize=MAX_QUEUED_EVENTS)
         self._reader: threading.Thread | None = None
         self._stop = threading.Event()
         self._reader_error: BaseException | None = None
@@ -160,14 +289,16 @@ class ServoClient:
             if self._open_serial is not None:
                 self._ser = self._open_serial(self.port_name, self.baudrate)
             else:
+                _check_port(self.port_name)
                 import serial
 
                 self._ser = serial.Serial(self.port_name, self.baudrate, timeout=0.05,
                                           write_timeout=self.timeout)
+        except ServoPortError:
+            raise
         except Exception as exc:  # serial.SerialException, OSError, ValueError
-            raise ServoPortError(f"{self.port_name}: cannot open the servo port: {exc}; check "
-                                 "the cable and the port name (ls /dev/ttyACM* /dev/ttyUSB*), "
-                                 "your access (group dialout), or use --virtual") from None
+            raise ServoPortError(f"{self.port_name}: cannot open the servo port: "
+                                 f"{_one_line(exc)}; {_PORT_HINT}") from None
         self._stop.clear()
         self._reader = threading.Thread(target=self._read_loop, name="servo-reader", daemon=True)
         self._reader.start()
@@ -208,9 +339,16 @@ class ServoClient:
                     raise ServoTimeout(f"{self.port_name}: no answer to PING within "
                                        f"{self.boot_timeout} s; is the rig_servo firmware "
                                        "flashed (evdnerf flash) and the baud rate 115200?") from None
-            except ServoCommandError:
-                raise ServoProtocolError(f"{self.port_name}: the device rejects PING; it does "
-                                         "not run the rig_servo firmware (evdnerf flash)") from None
+            except ServoCommandError as exc:
+                if not exc.untagged:
+                    raise ServoProtocolError(f"{self.port_name}: the device rejects PING; it "
+                                             "does not run the rig_servo firmware (evdnerf "
+                                             "flash)") from None
+                # the board's reset ate the start of a line: ask again
+                if time.monotonic() > deadline:
+                    raise ServoProtocolError(
+                        f"{self.port_name}: the device answers only garbled lines; check the "
+                        "baud rate (115200)") from None
         words = self.command("HELLO").words
         if len(words) < 3 or words[1] != "HELLO" or words[2].lower() != FIRMWARE_NAME:
             raise ServoProtocolError(f"{self.port_name}: unexpected HELLO reply {' '.join(words)!r}"
@@ -249,9 +387,12 @@ class ServoClient:
             buf += chunk
             *lines, buf = buf.split(b"\n")
             for raw in lines:
-                self._dispatch(raw.decode("ascii", "replace").strip(), now)
+                try:
+                    self._dispatch(raw.decode("ascii", "replace").strip(), now)
+                except (ValueError, IndexError, OverflowError):
+                    pass        # garbage from the device must never stop the reader
             if len(buf) > 4096:
-                buf = b""
+                buf = b""       # no line is that long: noise on the wire
         # wake any waiter: the port is gone
         with self._plock:
             for p in self._pending.values():
@@ -262,28 +403,47 @@ class ServoClient:
             return
         words = line.split()
         if words[0].startswith("@"):
-            try:
-                seq = int(words[0][1:])
-            except ValueError:
+            digits = words[0][1:]
+            if not (digits.isascii() and digits.isdigit()):
                 return
             with self._plock:
-                p = self._pending.get(seq)
+                p = self._pending.get(int(digits))
                 if p is not None:
                     p.line, p.recv_ns = " ".join(words[1:]), now
                     p.event.set()
             return          # a late reply to a command that timed out: dropped
+        if words[0] == "ERR":
+            # An untagged ERR answers a line whose tag the firmware could not read; this client
+            # tags every line and sends one at a time, so it answers the command now waiting.
+            with self._plock:
+                if len(self._pending) == 1:
+                    p = next(iter(self._pending.values()))
+                    if p.line is None:
+                        p.line, p.recv_ns, p.untagged = line, now, True
+                        p.event.set()
+            return
         kind = words[0]
         if kind in ("START", "DONE", "STOPPED") and len(words) >= 3:
-            try:
-                dev = self._unwrap(int(words[2]))
-            except ValueError:
-                return
-            self._events.put(Event(kind, words[1], dev, now, tuple(words[3:])))
+            dev = self._unwrap(_u32(words[2]))       # ValueError: dropped by the reader
+            self._put_event(Event(kind, words[1], dev, now, tuple(words[3:])))
         elif kind == "BOOT":
             self._raw_last = None       # the device clock restarted
             self._clock_samples.clear()
             self.clock = None
-            self._events.put(Event("BOOT", "", None, now, tuple(words[1:])))
+            self._put_event(Event("BOOT", "", None, now, tuple(words[1:])))
+
+    def _put_event(self, ev: Event) -> None:
+        """Queue a report; a device flooding reports nobody reads loses the oldest ones
+        instead of growing the queue without bound."""
+        while True:
+            try:
+                self._events.put_nowait(ev)
+                return
+            except queue.Full:
+                try:
+                    self._events.get_nowait()
+                except queue.Empty:
+                    pass
 
     # ------------------------------------------------------------------ commands
     def command(self, line: str, *, timeout: float | None = None,
@@ -293,9 +453,11 @@ class ServoClient:
             raise ServoPortError(f"{self.port_name}: the servo port is not open")
         timeout = self.timeout if timeout is None else timeout
         retries = self.retries if retries is None else retries
+        if "\n" in line or "\r" in line or not line.isascii():
+            raise ServoInputError(f"command {line!r}: one line of ASCII text")
         with self._lock:
             for attempt in range(retries + 1):
-                p = _Pending(next(self._seq))
+                p = _Pending(next(self._seq) % TAG_MODULO)
                 with self._plock:
                     self._pending[p.seq] = p
                 try:
@@ -309,8 +471,8 @@ class ServoClient:
                 finally:
                     with self._plock:
                         self._pending.pop(p.seq, None)
-                if p.line is not None:
-                    break
+                if p.line is not None and not (p.untagged and attempt < retries):
+                    break           # a garbled line had no effect: safe to send it again
                 if self._reader_error is not None:
                     raise ServoPortError(f"{self.port_name}: the servo port was lost: "
                                          f"{self._reader_error}")
@@ -320,15 +482,28 @@ class ServoClient:
         words = p.line.split()
         if words and words[0] == "ERR":
             raise ServoCommandError(line, words[1] if len(words) > 1 else "?",
-                                    " ".join(words[2:]))
+                                    " ".join(words[2:]), untagged=p.untagged)
         if not words or words[0] != "OK":
             raise ServoProtocolError(f"{self.port_name}: bad reply to `{line}`: {p.line!r}")
         return Reply(words, sent, p.recv_ns)
 
+    def _parse(self, reply: Reply, expect: str, parse):
+        """parse(words) of an OK reply, or ServoProtocolError naming the reply: a device that
+        answers garbage gets a clear error, never an IndexError."""
+        w = reply.words
+        try:
+            if len(w) < 2 or w[1] != expect:
+                raise ValueError
+            return parse(w)
+        except (ValueError, IndexError, TypeError, OverflowError, InputError):
+            raise ServoProtocolError(f"{self.port_name}: malformed {expect} reply "
+                                     f"{' '.join(w)[:200]!r}; is this the rig_servo firmware "
+                                     "of this checkout (evdnerf flash)?") from None
+
     def ping(self) -> tuple[int, int, int]:
         """(device_us, host_send_ns, host_recv_ns); also a clock-sync sample."""
         r = self.command("PING")
-        dev = self._unwrap(int(r.words[2]))
+        dev = self._unwrap(self._parse(r, "PONG", lambda w: _u32(w[2])))
         self._clock_samples.append((dev, (r.host_send_ns + r.host_recv_ns) // 2,
                                     r.host_recv_ns - r.host_send_ns))
         return dev, r.host_send_ns, r.host_recv_ns
@@ -405,15 +580,18 @@ class ServoClient:
         return self.wait_motion(name, timeout=expected_ms / 1000 + 2 * self.timeout + 1.0)
 
     def move(self, angle_deg: float, duration_ms: int, wait: bool = True) -> Motion | None:
-        return self._motion(f"MOVE {_deg(angle_deg)} {int(duration_ms)}", "MOVE", wait,
-                            int(duration_ms))
+        a = check_angle(angle_deg, "move angle")
+        ms = check_duration_ms(duration_ms, "move duration")
+        return self._motion(f"MOVE {_deg(a)} {ms}", "MOVE", wait, ms)
 
     def turn(self, angle_deg: float, duration_ms: int, wait: bool = True) -> Motion | None:
-        return self._motion(f"TURN {_deg(angle_deg)} {int(duration_ms)}", "TURN", wait,
-                            int(duration_ms))
+        a = check_angle(angle_deg, "turn angle")
+        ms = check_duration_ms(duration_ms, "turn duration")
+        return self._motion(f"TURN {_deg(a)} {ms}", "TURN", wait, ms)
 
     def home(self, duration_ms: int = 1000, wait: bool = True) -> Motion | None:
-        return self._motion(f"HOME {int(duration_ms)}", "HOME", wait, int(duration_ms))
+        ms = check_duration_ms(duration_ms, "home duration")
+        return self._motion(f"HOME {ms}", "HOME", wait, ms)
 
     def run(self, wait: bool = True, expected_ms: int | None = None) -> Motion | None:
         if expected_ms is None:
@@ -424,33 +602,43 @@ class ServoClient:
         self.command("STOP")
 
     def status(self) -> dict:
-        w = self.command("STATUS").words
-        return {"servo_deg": float(w[2]), "turntable_deg": float(w[3]),
-                "servo": w[4], "turntable": w[5]}
+        def parse(w):
+            if len(w) != 6:
+                raise ValueError
+            return {"servo_deg": _finite(w[2]), "turntable_deg": _finite(w[3]),
+                    "servo": w[4], "turntable": w[5]}
+        return self._parse(self.command("STATUS"), "STATUS", parse)
 
     def get_limits(self) -> Limits:
-        return self._limits(self.command("GET LIMITS").words)
+        return self._parse(self.command("GET LIMITS"), "LIMITS", self._limits)
 
     def set_limits(self, limits: Limits) -> Limits:
-        return self._limits(self.command(
+        limits = check_limits(limits)
+        return self._parse(self.command(
             f"SET LIMITS {_deg(limits.min_deg)} {_deg(limits.max_deg)} {int(limits.max_speed_dps)}"
-            f" {int(limits.pulse_min_us)} {int(limits.pulse_max_us)}", retries=0).words)
+            f" {int(limits.pulse_min_us)} {int(limits.pulse_max_us)}", retries=0),
+            "LIMITS", self._limits)
 
     @staticmethod
     def _limits(w) -> Limits:
-        return Limits(float(w[2]), float(w[3]), int(w[4]), int(w[5]), int(w[6]))
+        if len(w) != 7:
+            raise ValueError
+        return Limits(_finite(w[2]), _finite(w[3]), int(w[4]), int(w[5]), int(w[6]))
 
     def get_profile(self) -> RunProfile:
-        return self._profile(self.command("GET PROFILE").words)
+        return self._parse(self.command("GET PROFILE"), "PROFILE", self._profile)
 
     def set_profile(self, profile: RunProfile) -> RunProfile:
+        profile = check_profile(profile.start_deg, profile.segments)
         segs = " ".join(f"{_deg(a)} {int(ms)}" for a, ms in profile.segments)
-        return self._profile(self.command(f"SET PROFILE {_deg(profile.start_deg)} {segs}",
-                                          retries=0).words)
+        return self._parse(self.command(f"SET PROFILE {_deg(profile.start_deg)} {segs}",
+                                        retries=0), "PROFILE", self._profile)
 
     @staticmethod
     def _profile(w) -> RunProfile:
         vals = w[3:]
-        return RunProfile(start_deg=float(w[2]),
-                          segments=tuple((float(vals[i]), int(vals[i + 1]))
+        if len(vals) % 2:
+            raise ValueError
+        return RunProfile(start_deg=_finite(w[2]),
+                          segments=tuple((_finite(vals[i]), int(vals[i + 1]))
                                          for i in range(0, len(vals), 2)))

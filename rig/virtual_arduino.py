@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from evdnerf_ros.errors import EvdnerfError
+from evdnerf_ros.errors import EvdnerfError, InputError
 
 FIRMWARE_DIR = Path(__file__).resolve().parents[1] / "firmware"
 BUILD_DIR = FIRMWARE_DIR / "build"
@@ -48,14 +48,55 @@ class VirtualArduinoError(EvdnerfError):
     """The harness failed to build or start."""
 
 
+class EepromFileError(VirtualArduinoError, InputError):
+    """The --eeprom image cannot be read, written or saved, or is not a 1024-byte image."""
+
+
+#: Bytes of the ATmega328P's EEPROM, the exact size of an --eeprom image file.
+EEPROM_SIZE = 1024
+
+
+def check_eeprom_file(path) -> Path:
+    """Check an EEPROM image path before the chip starts, so settings are never lost silently.
+
+    An existing file must be a regular, readable and writable file of EEPROM_SIZE bytes; a new
+    one needs an existing, writable folder (the harness writes the image there through a temp
+    file and a rename).  Raises EepromFileError naming the path and the fix.
+    """
+    path = Path(path)
+    folder = path.parent
+    if not folder.is_dir():
+        raise EepromFileError(f"{path}: EEPROM image folder {folder} does not exist; create it "
+                              "or choose another --eeprom path")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise EepromFileError(f"{path}: EEPROM image folder {folder} is not writable, so the "
+                              "settings could not be saved; choose another --eeprom path")
+    if not os.path.lexists(path):
+        return path                       # first run: the chip starts erased
+    if not path.is_file():
+        raise EepromFileError(f"{path}: not a regular file; give an EEPROM image file path "
+                              "for --eeprom")
+    try:
+        with open(path, "r+b"):
+            pass
+    except OSError as exc:
+        raise EepromFileError(f"{path}: EEPROM image not readable and writable ({exc.strerror}); "
+                              "fix its permissions or choose another --eeprom path") from None
+    size = path.stat().st_size
+    if size != EEPROM_SIZE:
+        raise EepromFileError(f"{path}: EEPROM image is {size} bytes, expected {EEPROM_SIZE} "
+                              "(corrupt or not an ATmega328P image); move it away to start with "
+                              "an erased EEPROM")
+    return path
+
+
 def missing_tools() -> list[str]:
     """Debian packages (of DEBIAN_PACKAGES) whose files are absent on this machine."""
     checks = {
         "gcc-avr": lambda: shutil.which("avr-gcc") is not None,
         "avr-libc": lambda: Path("/usr/lib/avr/include/avr/io.h").exists(),
         "avrdude": lambda: shutil.which("avrdude") is not None,
-        "simavr": lambda: any(Path(p).exists() for p in (
-            "/usr/lib/x86_64-linux-gnu/libsimavr.so.1", "/usr/lib/aarch64-linux-gnu/libsimavr.so.1"))
+        "simavr": lambda: any(Path("/usr/lib").glob("*/libsimavr.so.*"))
         or shutil.which("simavr") is not None,
         "libsimavr-dev": lambda: Path("/usr/include/simavr/sim_avr.h").exists(),
     }
@@ -142,12 +183,14 @@ class VirtualArduino:
 
     def __init__(self, firmware: str | os.PathLike | None = FIRMWARE_HEX, *, pace: bool = False,
                  bootloader: str | os.PathLike | None = None,
-                 eeprom: str | os.PathLike | None = None,
+                 eeprom: str | os.PathLike | None = None, eeprom_stuck: bool = False,
                  workdir: str | os.PathLike | None = None, start_timeout: float = 10.0):
         self.firmware = Path(firmware) if firmware is not None else None
         self.bootloader = Path(bootloader) if bootloader is not None else None
         self.pace = pace
         self.eeprom = Path(eeprom) if eeprom is not None else None
+        self.eeprom_stuck = eeprom_stuck      # fault for tests: EEPROM writes do not stick
+        self.save_error: str | None = None
         self._own_dir = workdir is None
         self.workdir = Path(workdir) if workdir else Path(tempfile.mkdtemp(prefix="virtual-arduino-"))
         self.log_path = self.workdir / "pins.log"
@@ -158,6 +201,8 @@ class VirtualArduino:
     def start(self) -> str:
         if self.proc is not None:
             return self.port
+        if self.eeprom is not None:
+            check_eeprom_file(self.eeprom)
         build()
         self.workdir.mkdir(parents=True, exist_ok=True)
         if self.bootloader is not None and not self.bootloader.exists():
@@ -168,6 +213,8 @@ class VirtualArduino:
             cmd.append("--pace")
         if self.eeprom is not None:
             cmd += ["--eeprom", str(self.eeprom)]
+        if self.eeprom_stuck:
+            cmd.append("--eeprom-stuck")
         if self.bootloader is not None:
             cmd += ["--bootloader", str(self.bootloader)]
         if self.firmware is not None:
@@ -195,9 +242,13 @@ class VirtualArduino:
             if proc.poll() is None:
                 proc.kill()
             err = proc.stderr.read() if proc.stderr else ""
+            code = proc.wait()
             self.stop()
+            msg = " ".join(err.split())[-500:].removeprefix("virtual_arduino: ")
+            if code == 2 and self.eeprom is not None and str(self.eeprom) in msg:
+                raise EepromFileError(msg)      # the harness's own check of --eeprom
             raise VirtualArduinoError(f"{HARNESS}: did not report its pty within "
-                                      f"{self.start_timeout} s: {err.strip()[-500:]}")
+                                      f"{self.start_timeout} s: {msg}")
         return result[0]
 
     def pin_log(self) -> np.ndarray:
@@ -205,9 +256,13 @@ class VirtualArduino:
         return read_pin_log(self.log_path)
 
     def stop(self) -> None:
-        """Stop the harness (SIGTERM: it saves --eeprom, flushes the log and exits)."""
+        """Stop the harness (SIGTERM: it saves --eeprom, flushes the log and exits).
+
+        When the EEPROM image could not be saved, ``save_error`` says why (see ``close``).
+        """
         if self.proc is None:
             return
+        killed = False
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
             try:
@@ -215,19 +270,40 @@ class VirtualArduino:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
+                killed = True
+        err = ""
+        if self.proc.stderr and self.proc.returncode is not None:
+            try:
+                err = self.proc.stderr.read()
+            except (OSError, ValueError):
+                err = ""
+        if self.eeprom is not None and self.port is not None:
+            if killed:
+                self.save_error = (f"{self.eeprom}: the virtual Arduino did not stop within 5 s "
+                                   "and was killed; the EEPROM settings of this run were not saved")
+            elif self.proc.returncode == 1:
+                lines = [ln.removeprefix("virtual_arduino: ") for ln in err.splitlines()
+                         if "EEPROM" in ln]
+                self.save_error = lines[-1] if lines else (
+                    f"{self.eeprom}: the EEPROM image could not be saved")
         for stream in (self.proc.stdout, self.proc.stderr):
             if stream:
                 stream.close()
         self.proc = None
 
-    def close(self) -> None:
+    def close(self, check: bool = True) -> None:
+        """Stop and remove the temp folder; with ``check``, raise EepromFileError when the
+        EEPROM image could not be saved (the settings of this run are lost)."""
         self.stop()
         if self._own_dir:
             shutil.rmtree(self.workdir, ignore_errors=True)
+        if check and self.save_error:
+            err, self.save_error = self.save_error, None
+            raise EepromFileError(err)
 
     def __enter__(self) -> "VirtualArduino":
         self.start()
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        self.close(check=exc_type is None)

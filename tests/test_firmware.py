@@ -411,3 +411,190 @@ def test_arduino_sketch_compiles_against_the_arduino_core(built, tmp_path):
     # the sketch calls the C core unmangled, and the core is reachable through src/
     assert " U rig_setup" in syms and " U rig_loop" in syms
     assert (va_mod.FIRMWARE_DIR / "rig_servo" / "src" / "rig.c").exists()
+
+
+# --------------------------------------------------------------------------- tags on every reply
+
+def raw_replies(port, lines: list[bytes], per_line=0.25) -> list[list[str]]:
+    """Send each line alone and collect the lines that come back before the next is sent."""
+    import serial
+
+    out, buf = [], b""
+    with serial.Serial(port, 115200, timeout=0.02) as s:
+        for ln in lines:
+            s.write(ln)
+            s.flush()
+            deadline = time.monotonic() + per_line
+            while time.monotonic() < deadline:
+                buf += s.read(s.in_waiting or 1)
+            *done, buf = buf.split(b"\n")            # a report may be cut mid-line
+            out.append([x for x in (d.decode("ascii", "replace") for d in done)
+                        if x and not x.startswith(("BOOT", "START", "DONE", "STOPPED"))])
+    return out
+
+
+def test_every_error_reply_carries_its_tag(va, client):
+    """Each error path answers `@<tag> ERR <CODE>`: line-level errors included."""
+    client.close()
+    cases = [
+        (b"@1 " + b"X" * 300 + b"\n", "LINE_TOO_LONG"),
+        (b"@2 FLY 90\n", "UNKNOWN_COMMAND"),
+        (b"@3 MOVE abc 100\n", "BAD_ARGUMENT"),           # bad number
+        (b"@4 MOVE 90.1234 100\n", "BAD_ARGUMENT"),
+        (b"@5 MOVE 181 100\n", "OUT_OF_RANGE"),
+        (b"@6 MOVE 90\n", "BAD_ARGUMENT"),                # wrong argument count
+        (b"@7 SET PROFILE 90 100\n", "BAD_ARGUMENT"),
+        (b"@8 SET LIMITS 10 5 100 1000 2000\n", "OUT_OF_RANGE"),
+        (b"@9 MOVE 179 1\n", "TOO_FAST"),
+        (b"@10 PING" + b" A" * 30 + b"\n", "BAD_ARGUMENT"),  # too many arguments
+        (b"@11 PING \x01\n", "BAD_CHARACTER"),
+        (b"@12 PING \xff\n", "BAD_CHARACTER"),
+        (b"@13\n", "BAD_ARGUMENT"),                       # empty command
+        (b"@4294967295 GET FOO\n", "BAD_ARGUMENT"),       # the largest tag
+        (b"@14 MOVE 120 200\n", "OK"),
+        (b"@15 RUN\n", "NOT_HOME"),
+        (b"@16 HOME 65535\n", "OK"),
+        (b"@17 MOVE 100 500\n", "BUSY"),                   # HOME still runs
+        (b"@18 SET PROFILE 90 100 500\n", "BUSY"),
+        (b"@19 STOP\n", "OK"),
+    ]
+    replies = raw_replies(va.port, [ln for ln, _ in cases])
+    for (line, code), got in zip(cases, replies):
+        tag = line.split()[0].decode()
+        assert len(got) == 1, (line, got)
+        words = got[0].split()
+        assert words[0] == tag, (line, got)
+        if code == "OK":
+            assert words[1] == "OK", (line, got)
+        else:
+            assert words[1:3] == ["ERR", code], (line, got)
+
+
+def test_unreadable_tags_get_the_documented_untagged_reply(va, client):
+    client.close()
+    bad = [b"@x PING\n", b"@ PING\n", b"@4294967296 PING\n", b"@1\x012 PING\n", b"@-1 PING\n",
+           b"@12abc PING\n"]
+    for line, got in zip(bad, raw_replies(va.port, bad)):
+        assert len(got) == 1 and got[0].startswith("ERR BAD_TAG "), (line, got)
+    # the firmware moved on: a tagged line right after is answered normally
+    got = raw_replies(va.port, [b"@77 PING\n"])
+    assert got[0][0].startswith("@77 OK PONG ")
+
+
+def test_client_gets_each_error_at_once_not_a_timeout(client):
+    from rig.servo import ServoCommandError
+
+    lines = {"PING " + "X" * 300: "LINE_TOO_LONG", "PING \x01": "BAD_CHARACTER",
+             "FLY": "UNKNOWN_COMMAND", "MOVE nan 100": "BAD_ARGUMENT",
+             "MOVE 90 0": "BAD_ARGUMENT", "TURN 200 100": "OUT_OF_RANGE",
+             "PING " + "A " * 30: "BAD_ARGUMENT", "SET LIMITS 1": "BAD_ARGUMENT"}
+    for line, code in lines.items():
+        t0 = time.monotonic()
+        with pytest.raises(ServoCommandError) as exc:
+            client.command(line, retries=0)
+        assert exc.value.code == code and not exc.value.untagged, line
+        assert time.monotonic() - t0 < client.timeout / 2, line
+        assert code in str(exc.value)
+
+
+def test_client_recognises_untagged_errors_at_once(client, monkeypatch):
+    """A tag the firmware cannot read (here: over 32 bits) is answered untagged; the client
+    takes that as the answer to its command instead of waiting for a timeout."""
+    import itertools
+
+    from rig import servo as servo_mod
+    from rig.servo import ServoCommandError
+
+    monkeypatch.setattr(servo_mod, "TAG_MODULO", 1 << 40)
+    client._seq = itertools.count(1 << 33)
+    t0 = time.monotonic()
+    with pytest.raises(ServoCommandError) as exc:
+        client.command("PING", retries=2)
+    assert exc.value.untagged and exc.value.code == "BAD_TAG"
+    assert "garbled" in str(exc.value)
+    assert time.monotonic() - t0 < client.timeout         # 3 attempts, none timed out
+    monkeypatch.undo()
+    client._seq = itertools.count(1)
+    client.ping()
+
+
+def test_eight_segment_profile_round_trip_and_run(client):
+    """The protocol's maximum (8 segments) in its longest text form, with the longest tag."""
+    import itertools
+
+    longest = RunProfile(179.999, tuple((round(179.999 - k * 0.001, 3), 65535 - k)
+                                         for k in range(8)))
+    client._seq = itertools.count((1 << 32) - 3)          # @4294967293.. and wrapping to @0
+    assert client.set_profile(longest) == longest
+    assert client.get_profile() == longest
+    assert client.get_profile() == longest                # tag wrapped past 2^32 - 1
+    # an 8-segment profile that runs: 8 x 100 ms, peak speeds within 600 deg/s
+    prof = RunProfile(90.0, tuple((90.0 + (20.125 if k % 2 == 0 else -10.5), 100)
+                                  for k in range(8)))
+    assert client.set_profile(prof) == prof
+    assert client.get_profile() == prof
+    client.home(500)
+    m = client.run()
+    assert m.end.kind == "DONE" and abs(m.duration_us - 800_000) <= 25_000
+
+
+def test_flooded_receive_buffer_never_misattributes_a_reply(va, client):
+    """40 long lines sent at once overflow the 64-byte receive buffer: every line still gets
+    exactly one reply with its own tag (OK with its own token, or ERR RX_OVERFLOW)."""
+    import serial
+
+    client.close()
+    tokens = {k: f"T{k}" + "Z" * 140 for k in range(40)}
+    payload = b"".join(f"@{k} PING {tok}\n".encode() for k, tok in tokens.items())
+    with serial.Serial(va.port, 115200, timeout=0.05) as s:
+        s.write(payload)
+        s.flush()
+        deadline, buf = time.monotonic() + 10, b""
+        while time.monotonic() < deadline and buf.count(b"\n") < 40:
+            buf += s.read(s.in_waiting or 1)
+    lines = [ln for ln in buf.decode().splitlines() if not ln.startswith("BOOT")]
+    seen, overflowed = {}, 0
+    for ln in lines:
+        words = ln.split()
+        if not words[0].startswith("@"):
+            assert words[0] == "ERR", ln                 # the documented untagged form
+            continue
+        k = int(words[0][1:])
+        assert k not in seen, ln
+        seen[k] = words
+        if words[1] == "OK":
+            assert words[2] == "PONG" and words[4] == tokens[k].upper(), ln
+        else:
+            assert words[1:3] == ["ERR", "RX_OVERFLOW"], ln
+            overflowed += 1
+    assert len(lines) == 40
+    assert overflowed >= 1                                # the path was exercised
+
+
+def test_eeprom_write_failure_is_a_tagged_error(built, tmp_path):
+    from rig.servo import Limits, ServoClient, ServoCommandError
+
+    with va_mod.VirtualArduino(workdir=tmp_path, eeprom_stuck=True) as v, \
+            ServoClient(v.port) as c:
+        for call in (lambda: c.set_profile(RunProfile(80.0, ((100.0, 300),))),
+                     lambda: c.set_limits(Limits(5, 175, 700, 900, 2100))):
+            with pytest.raises(ServoCommandError) as exc:
+                call()
+            assert exc.value.code == "EEPROM" and not exc.value.untagged
+        # RAM holds what the EEPROM holds (erased: the defaults), not the refused settings
+        assert c.get_profile() == DEFAULT_RUN
+        assert c.get_limits() == Limits(0, 180, 600, 1000, 2000)
+
+
+def test_interrupt_handlers_stay_short(built, tmp_path):
+    """The servo pulse edges are set in the Timer1 interrupt; the serial interrupts that can
+    delay it must call no library routine (a '%' by a non-power of two is a ~15 us division)."""
+    objdump = shutil.which("avr-objdump")
+    if objdump is None:
+        pytest.skip("needs avr-objdump (Debian package binutils-avr)")
+    dis = subprocess.run([objdump, "-d", str(va_mod.BUILD_DIR / "rig_servo.elf")],
+                         capture_output=True, text=True, check=True).stdout
+    for vec in ("__vector_18", "__vector_19"):          # USART RX, USART data register empty
+        body = dis.split(f"<{vec}>:", 1)[1].split("reti", 1)[0]
+        assert "call" not in body, vec
+        assert body.count("\n") < 60, vec

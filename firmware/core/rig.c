@@ -96,7 +96,9 @@ static void config_load(void)
         config_defaults(&cfg);
 }
 
-static void config_save(void)
+/* Returns 0 when a byte does not read back as written (a worn-out cell): the caller then
+ * reloads what the EEPROM holds, so RAM never claims settings that a reset would lose. */
+static uint8_t config_save(void)
 {
     const uint8_t *p = (const uint8_t *)&cfg;
     uint8_t *e = (uint8_t *)&ee_cfg;
@@ -106,6 +108,10 @@ static void config_save(void)
         wdt_reset();
         eeprom_update_byte(e + i, p[i]);
     }
+    for (i = 0; i < sizeof(cfg); i++)
+        if (eeprom_read_byte(e + i) != p[i])
+            return 0;
+    return 1;
 }
 
 /* ------------------------------------------------------------------ device clock, frames */
@@ -170,8 +176,15 @@ ISR(TIMER1_COMPB_vect)
 /* ------------------------------------------------------------------ serial */
 
 #define RX_SIZE 64
-#define TX_SIZE 128
-static volatile uint8_t rx_buf[RX_SIZE], rx_head, rx_tail, rx_overflow;
+#define TX_SIZE 160                 /* the longest reply (GET PROFILE, 8 segments) fits whole */
+/* Not a power of two: indices wrap by comparison, never by '%' (a division routine of ~15 us
+ * in the transmit interrupt would delay the servo pulse edges). */
+#define TX_NEXT(i) ((uint8_t)((i) + 1 == TX_SIZE ? 0 : (i) + 1))
+static volatile uint8_t rx_buf[RX_SIZE], rx_head, rx_tail, rx_lost;
+/* rx_gap[i] set: bytes were lost (receive buffer full) just before rx_buf[i].  Where the gap
+ * lies decides whether the line's tag can still be trusted (see process_line).  A byte per
+ * slot, not a bit: the receive interrupt stays short, so the servo pulses keep their timing. */
+static volatile uint8_t rx_gap[RX_SIZE];
 static volatile uint8_t tx_buf[TX_SIZE], tx_head, tx_tail;
 
 ISR(USART_RX_vect)
@@ -179,10 +192,13 @@ ISR(USART_RX_vect)
     uint8_t c = UDR0;
     uint8_t n = (uint8_t)((rx_head + 1) % RX_SIZE);
     if (n != rx_tail) {
-        rx_buf[rx_head] = c;
+        uint8_t h = rx_head;
+        rx_gap[h] = rx_lost;
+        rx_lost = 0;
+        rx_buf[h] = c;
         rx_head = n;
     } else {
-        rx_overflow = 1;
+        rx_lost = 1;
     }
 }
 
@@ -193,12 +209,12 @@ ISR(USART_UDRE_vect)
         return;
     }
     UDR0 = tx_buf[tx_tail];
-    tx_tail = (uint8_t)((tx_tail + 1) % TX_SIZE);
+    tx_tail = TX_NEXT(tx_tail);
 }
 
 static void out_c(char c)
 {
-    uint8_t n = (uint8_t)((tx_head + 1) % TX_SIZE);
+    uint8_t n = TX_NEXT(tx_head);
     while (n == tx_tail)            /* the UART drains at 115200 whether or not a host listens */
         wdt_reset();
     tx_buf[tx_head] = (uint8_t)c;
@@ -332,7 +348,7 @@ static void frames_update(void)
 
 #define MAX_TOKENS 20
 static char line[RIG_MAX_LINE + 1];
-static uint8_t line_len, line_too_long, line_bad_char;
+static uint8_t line_len, line_too_long, line_bad_char, line_lost;
 static uint8_t has_seq;
 static uint32_t seq;
 
@@ -405,6 +421,17 @@ static void reply_err(const char *code, const char *reason)   /* both PSTR */
     out_c(' ');
     out_P(reason);
     out_c('\n');
+}
+
+/* Stores cfg in EEPROM; when it does not read back, answers ERR EEPROM and returns 0 with
+ * cfg reloaded from what the EEPROM holds (what the next reset would give). */
+static uint8_t store_config(void)
+{
+    if (config_save())
+        return 1;
+    config_load();
+    reply_err(PSTR("EEPROM"), PSTR("EEPROM write did not read back (worn-out cell?); settings not stored"));
+    return 0;
 }
 
 static uint8_t too_fast(int32_t a0, int32_t a1, uint16_t ms)
@@ -608,7 +635,8 @@ static void execute(char **tok, uint8_t n)
         cfg.max_speed_dps = (uint16_t)sp;
         cfg.pulse_min_us = (uint16_t)pmin;
         cfg.pulse_max_us = (uint16_t)pmax;
-        config_save();
+        if (!store_config())
+            return;
         reply_ok_P(PSTR("LIMITS"));
         out_limits();
     } else if (!strcmp_P(c, PSTR("SET")) && n >= 2 && !strcmp_P(tok[1], PSTR("PROFILE"))) {
@@ -631,13 +659,15 @@ static void execute(char **tok, uint8_t n)
         cfg.start_mdeg = start;
         cfg.nseg = nseg;
         memcpy(cfg.seg, seg, sizeof(seg));
-        config_save();
+        if (!store_config())
+            return;
         reply_ok_P(PSTR("PROFILE"));
         out_profile();
     } else if (!strcmp_P(c, PSTR("FACTORY"))) {
         if (busy || turn.state != M_IDLE) { reply_err(PSTR("BUSY"), PSTR("a motion is running; STOP first")); return; }
         config_defaults(&cfg);
-        config_save();
+        if (!store_config())
+            return;
         reply_ok_P(PSTR("FACTORY\n"));
     } else if (!strcmp_P(c, PSTR("REBOOT"))) {
         reply_ok_P(PSTR("REBOOT\n"));
@@ -652,26 +682,60 @@ static void execute(char **tok, uint8_t n)
     }
 }
 
+/* Reads a leading "@<n>" tag into seq / has_seq and returns where the command starts; NULL
+ * when the line starts with '@' but no valid tag follows (digits only, 0..4294967295, then a
+ * space, a tab or the end): such a line is answered untagged (PROTOCOL.md, "Tags"). */
+static char *parse_tag(char *p)
+{
+    char *q, end;
+    uint8_t ok;
+    while (*p == ' ' || *p == '\t')
+        p++;
+    if (*p != '@')
+        return p;
+    for (q = p + 1; *q && *q != ' ' && *q != '\t'; q++) {}
+    end = *q;
+    *q = 0;
+    ok = parse_u32(p + 1, 0xFFFFFFFFUL, &seq);
+    *q = end;
+    if (!ok)
+        return NULL;
+    has_seq = 1;
+    return q;
+}
+
+/* Every reply to a line whose tag can be read carries that tag, errors included; the tag is
+ * read first, before anything else about the line is judged. */
 static void process_line(void)
 {
     char *tok[MAX_TOKENS];
-    uint8_t n = 0, i;
-    char *p = line;
+    uint8_t n = 0;
+    char *p, *cmd;
+    line[line_len] = 0;
     has_seq = 0;
-    if (line_too_long || line_bad_char || rx_overflow) {
-        if (line_too_long)
-            reply_err(PSTR("LINE_TOO_LONG"), PSTR("lines are at most 128 characters; line ignored"));
-        else if (line_bad_char)
-            reply_err(PSTR("BAD_CHARACTER"), PSTR("non-printable byte in line; line ignored"));
-        else
-            reply_err(PSTR("RX_OVERFLOW"), PSTR("receive buffer overflowed; line ignored"));
-        rx_overflow = 0;
+    p = parse_tag(line);
+    if (!p) {
+        reply_err(PSTR("BAD_TAG"), line_lost ? PSTR("tag unreadable: receive buffer overflowed; line ignored")
+                                   : line_bad_char ? PSTR("tag unreadable: non-printable byte; line ignored")
+                                   : PSTR("a tag is @<0..4294967295> then a space; line ignored"));
         return;
     }
-    line[line_len] = 0;
-    for (i = 0; i < line_len; i++)
-        if (line[i] >= 'a' && line[i] <= 'z')
-            line[i] = (char)(line[i] - 'a' + 'A');
+    if (line_lost) {
+        reply_err(PSTR("RX_OVERFLOW"), PSTR("receive buffer overflowed, bytes lost; wait for each reply; line ignored"));
+        return;
+    }
+    if (line_too_long) {
+        reply_err(PSTR("LINE_TOO_LONG"), PSTR("lines are at most 160 characters; line ignored"));
+        return;
+    }
+    if (line_bad_char) {
+        reply_err(PSTR("BAD_CHARACTER"), PSTR("non-printable byte in line; line ignored"));
+        return;
+    }
+    for (cmd = p; *p; p++)            /* upper-case the command */
+        if (*p >= 'a' && *p <= 'z')
+            *p = (char)(*p - 'a' + 'A');
+    p = cmd;
     while (*p) {
         while (*p == ' ' || *p == '\t')
             *p++ = 0;
@@ -685,16 +749,6 @@ static void process_line(void)
         while (*p && *p != ' ' && *p != '\t')
             p++;
     }
-    if (n && tok[0][0] == '@') {
-        if (!parse_u32(tok[0] + 1, 0xFFFFFFFFUL, &seq)) {
-            reply_err(PSTR("BAD_ARGUMENT"), PSTR("sequence tag is @<number>"));
-            return;
-        }
-        has_seq = 1;
-        for (i = 1; i < n; i++)
-            tok[i - 1] = tok[i];
-        n--;
-    }
     if (!n) {
         if (has_seq)
             reply_err(PSTR("BAD_ARGUMENT"), PSTR("empty command"));
@@ -703,22 +757,37 @@ static void process_line(void)
     execute(tok, n);
 }
 
+/* A byte that cannot be kept (non-printable) or bytes that were lost leave a '?' in the line,
+ * so that a tag they cut through no longer reads as a valid tag. */
+static void line_put(char c)
+{
+    if (line_len >= RIG_MAX_LINE)
+        line_too_long = 1;
+    else
+        line[line_len++] = c;
+}
+
 static void serial_poll(void)
 {
     while (rx_tail != rx_head) {
-        uint8_t c = rx_buf[rx_tail];
-        rx_tail = (uint8_t)((rx_tail + 1) % RX_SIZE);
+        uint8_t i = rx_tail;
+        uint8_t c = rx_buf[i];
+        uint8_t gap = rx_gap[i];
+        rx_tail = (uint8_t)((i + 1) % RX_SIZE);
+        if (gap) {
+            line_lost = 1;
+            line_put('?');
+        }
         if (c == '\n') {
             process_line();
-            line_len = line_too_long = line_bad_char = 0;
+            line_len = line_too_long = line_bad_char = line_lost = 0;
         } else if (c == '\r') {
             continue;
-        } else if (line_len >= RIG_MAX_LINE) {
-            line_too_long = 1;
         } else if (c < 0x20 || c > 0x7e) {
             line_bad_char = 1;
+            line_put('?');
         } else {
-            line[line_len++] = (char)c;
+            line_put((char)c);
         }
         if (frame_flag)               /* a long line never delays the next frame's pulses */
             frames_update();

@@ -12,7 +12,9 @@ extern "C" {
 #define RIG_FIRMWARE_VERSION "1.0.0"
 #define RIG_FRAME_US 20000UL          /* 50 Hz servo frame */
 #define RIG_TRIGGER_US 1000U          /* trigger-out pulse width */
-#define RIG_MAX_LINE 128              /* longest accepted command line, without newline */
+/* Longest accepted command line, without the newline.  The longest command in canonical form,
+ * "@4294967295 SET PROFILE 179.999" + 8 x " 179.999 65535", is 143 characters. */
+#define RIG_MAX_LINE 160
 
 void rig_setup(void);
 void rig_loop(void);

@@ -1,20 +1,29 @@
 /* virtual_arduino: an ATmega328P at 16 MHz in simavr behind a pseudo-terminal.
  *
- *   virtual_arduino [--pace] [--log FILE] [--eeprom FILE] [--bootloader HEX] [FIRMWARE.hex|.elf]
+ *   virtual_arduino [--pace] [--log FILE] [--eeprom FILE] [--eeprom-stuck] [--bootloader HEX]
+ *                   [FIRMWARE.hex|.elf]
  *
  * Prints "PTY <path>" on stdout once the UART is reachable (pyserial can open it at any baud),
  * and logs every edge of D8 (PB0, trigger), D9 (PB1, scene servo) and D10 (PB2, turntable) to
  * the log file as "<simulated time in us, 4 decimals> <pin> <0|1>", plus "<t> RESET" lines.
  * --pace keeps simulated time at or behind the wall clock (needed by avrdude's bootloader
  * timeouts); without it the chip runs as fast as the host allows.  --eeprom loads the EEPROM
- * from FILE at start (if it exists) and writes it back on SIGTERM / SIGINT.  --bootloader
- * loads a bootloader hex at its own address and starts there (BOOTRST), like a real Uno.
+ * from FILE at start (if it exists) and writes it back on SIGTERM / SIGINT / SIGHUP, or when
+ * the process that started the harness dies.  FILE is checked before the chip starts: an
+ * existing FILE must be a readable, writable 1024-byte image, a new one needs a writable
+ * folder; otherwise the harness exits with status 2 and a message naming FILE, so settings
+ * are never silently lost.  The image is written atomically (temp file, then rename); a failed
+ * write is reported on stderr with exit status 1.  --eeprom-stuck is a fault for tests: EEPROM
+ * writes do not stick (a worn-out chip).  --bootloader loads a bootloader hex at its own address
+ * and starts there (BOOTRST), like a real Uno.
  * Facts and simavr 1.6 pitfalls handled here: ../shared/notes/firmware.md.
  */
 #define _GNU_SOURCE
 #include <errno.h>
 #include <fcntl.h>
+#include <libgen.h>
 #include <pty.h>
+#include <sys/stat.h>
 #include <termios.h>
 #include <signal.h>
 #include <stdio.h>
@@ -37,6 +46,8 @@ static avr_t *avr;
 static FILE *logf;
 static int pace;
 static const char *eeprom_path;
+static int eeprom_stuck;
+static pid_t parent_pid;
 static volatile sig_atomic_t stop_requested;
 static struct timespec wall0;
 static void (*core_reset)(avr_t *);
@@ -125,6 +136,8 @@ static avr_cycle_count_t tick(avr_t *a, avr_cycle_count_t when, void *param)
     pty_pump();
     if (logf && ++n % 4 == 0)
         fflush(logf);
+    if (n % 400 == 0 && getppid() != parent_pid)
+        stop_requested = 1;        /* our parent died (even by SIGKILL): save and exit */
     if (pace) {
         struct timespec now;
         double wall, sim;
@@ -178,35 +191,134 @@ static int load_hex(const char *path, int is_boot)
     return 0;
 }
 
-static void eeprom_io(int save)
+/* Checks --eeprom before the chip starts (exit status 2, FILE named): an existing image must
+ * be a regular, readable and writable file of exactly EEPROM_SIZE bytes; a new one needs an
+ * existing, writable folder (the image is written there through a temp file). */
+static int eeprom_check(const char *path)
+{
+    struct stat st;
+    char dir_buf[4096];
+    const char *dir;
+    int fd;
+    if (strlen(path) >= sizeof(dir_buf)) {
+        fprintf(stderr, "virtual_arduino: %s: path too long\n", path);
+        return -1;
+    }
+    strcpy(dir_buf, path);
+    dir = dirname(dir_buf);
+    if (stat(dir, &st) != 0 || !S_ISDIR(st.st_mode)) {
+        fprintf(stderr, "virtual_arduino: %s: EEPROM image folder %s does not exist; create it "
+                        "or choose another --eeprom path\n", path, dir);
+        return -1;
+    }
+    if (access(dir, W_OK | X_OK) != 0) {
+        fprintf(stderr, "virtual_arduino: %s: EEPROM image folder %s is not writable (%s); the "
+                        "settings could not be saved; choose another --eeprom path\n",
+                path, dir, strerror(errno));
+        return -1;
+    }
+    if (stat(path, &st) != 0) {
+        if (errno == ENOENT)
+            return 0;              /* first run: the chip's EEPROM is erased (0xFF) */
+        fprintf(stderr, "virtual_arduino: %s: %s\n", path, strerror(errno));
+        return -1;
+    }
+    if (!S_ISREG(st.st_mode)) {
+        fprintf(stderr, "virtual_arduino: %s: not a regular file; give an EEPROM image file "
+                        "path for --eeprom\n", path);
+        return -1;
+    }
+    fd = open(path, O_RDWR);
+    if (fd < 0) {
+        fprintf(stderr, "virtual_arduino: %s: EEPROM image not readable and writable (%s); fix "
+                        "its permissions or choose another --eeprom path\n", path, strerror(errno));
+        return -1;
+    }
+    close(fd);
+    if (st.st_size != EEPROM_SIZE) {
+        fprintf(stderr, "virtual_arduino: %s: EEPROM image is %lld bytes, expected %d (corrupt or "
+                        "not an ATmega328P image); move it away to start with an erased EEPROM\n",
+                path, (long long)st.st_size, EEPROM_SIZE);
+        return -1;
+    }
+    return 0;
+}
+
+static int eeprom_load(void)
 {
     uint8_t buf[EEPROM_SIZE];
     avr_eeprom_desc_t d = {.ee = buf, .offset = 0, .size = EEPROM_SIZE};
-    FILE *f;
-    if (!eeprom_path)
-        return;
-    if (save) {
-        avr_ioctl(avr, AVR_IOCTL_EEPROM_GET, &d);
-        f = fopen(eeprom_path, "wb");
-        if (!f || fwrite(d.ee, 1, EEPROM_SIZE, f) != EEPROM_SIZE)
-            fprintf(stderr, "virtual_arduino: cannot write %s\n", eeprom_path);
-        if (f)
-            fclose(f);
-        return;
+    FILE *f = fopen(eeprom_path, "rb");
+    size_t n;
+    if (!f) {
+        if (errno == ENOENT)
+            return 0;
+        fprintf(stderr, "virtual_arduino: %s: cannot read the EEPROM image: %s\n", eeprom_path,
+                strerror(errno));
+        return -1;
     }
-    f = fopen(eeprom_path, "rb");
-    if (!f)
-        return;                     /* first run: the chip's EEPROM is erased (0xFF) */
-    if (fread(buf, 1, EEPROM_SIZE, f) == EEPROM_SIZE)
-        avr_ioctl(avr, AVR_IOCTL_EEPROM_SET, &d);
+    n = fread(buf, 1, EEPROM_SIZE, f);
     fclose(f);
+    if (n != EEPROM_SIZE) {
+        fprintf(stderr, "virtual_arduino: %s: EEPROM image shorter than %d bytes (it changed "
+                        "while starting?)\n", eeprom_path, EEPROM_SIZE);
+        return -1;
+    }
+    avr_ioctl(avr, AVR_IOCTL_EEPROM_SET, &d);
+    return 0;
+}
+
+/* Written to a temp file in the same folder, then renamed: a crash mid-write never leaves a
+ * truncated image.  Returns -1 (message on stderr) when the image could not be saved. */
+static int eeprom_save(void)
+{
+    uint8_t buf[EEPROM_SIZE];
+    avr_eeprom_desc_t d = {.ee = buf, .offset = 0, .size = EEPROM_SIZE};
+    char tmp[4200];
+    int fd, ok;
+    avr_ioctl(avr, AVR_IOCTL_EEPROM_GET, &d);
+    snprintf(tmp, sizeof(tmp), "%s.tmp-%ld", eeprom_path, (long)getpid());
+    fd = open(tmp, O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    ok = fd >= 0 && write(fd, buf, EEPROM_SIZE) == EEPROM_SIZE && fsync(fd) == 0;
+    if (fd >= 0 && close(fd) != 0)
+        ok = 0;
+    if (ok && rename(tmp, eeprom_path) == 0)
+        return 0;
+    fprintf(stderr, "virtual_arduino: %s: cannot save the EEPROM image: %s; the settings of "
+                    "this run are lost\n", eeprom_path, strerror(errno));
+    unlink(tmp);
+    return -1;
+}
+
+/* --eeprom-stuck: every write the firmware makes is undone right after simavr performed it
+ * (simavr calls the EECR writers in the order they registered, its EEPROM module first). */
+static uint8_t stuck_image[EEPROM_SIZE];
+
+static void eeprom_stuck_hook(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
+{
+    avr_eeprom_desc_t d = {.ee = NULL, .offset = 0, .size = 0};
+    uint16_t ee_addr = (uint16_t)(a->data[0x41] | (a->data[0x42] << 8));
+    (void)addr;
+    (void)param;
+    if (!(v & 0x02) || ee_addr >= EEPROM_SIZE)          /* EEPE: a write was requested */
+        return;
+    avr_ioctl(a, AVR_IOCTL_EEPROM_GET, &d);
+    if (d.ee)
+        d.ee[ee_addr] = stuck_image[ee_addr];
+}
+
+static void eeprom_stuck_init(void)
+{
+    avr_eeprom_desc_t d = {.ee = stuck_image, .offset = 0, .size = EEPROM_SIZE};
+    avr_ioctl(avr, AVR_IOCTL_EEPROM_GET, &d);
+    avr_register_io_write(avr, 0x3F, eeprom_stuck_hook, NULL);    /* EECR */
 }
 
 int main(int argc, char **argv)
 {
     const char *fw = NULL, *boot = NULL, *log_path = NULL;
     static const char *names[3] = {"D8", "D9", "D10"};
-    int i;
+    int i, status;
 
     for (i = 1; i < argc; i++) {
         if (!strcmp(argv[i], "--pace"))
@@ -215,12 +327,14 @@ int main(int argc, char **argv)
             log_path = argv[++i];
         else if (!strcmp(argv[i], "--eeprom") && i + 1 < argc)
             eeprom_path = argv[++i];
+        else if (!strcmp(argv[i], "--eeprom-stuck"))
+            eeprom_stuck = 1;
         else if (!strcmp(argv[i], "--bootloader") && i + 1 < argc)
             boot = argv[++i];
         else if (argv[i][0] != '-' && !fw)
             fw = argv[i];
         else {
-            fprintf(stderr, "usage: %s [--pace] [--log FILE] [--eeprom FILE] "
+            fprintf(stderr, "usage: %s [--pace] [--log FILE] [--eeprom FILE] [--eeprom-stuck] "
                             "[--bootloader HEX] [FIRMWARE.hex|.elf]\n", argv[0]);
             return 2;
         }
@@ -229,6 +343,9 @@ int main(int argc, char **argv)
         fprintf(stderr, "virtual_arduino: give a firmware and/or --bootloader\n");
         return 2;
     }
+    if (eeprom_path && eeprom_check(eeprom_path) != 0)
+        return 2;
+    parent_pid = getppid();
 
     if (fw && strlen(fw) > 4 && !strcmp(fw + strlen(fw) - 4, ".elf")) {
         elf_firmware_t f;
@@ -266,7 +383,10 @@ int main(int argc, char **argv)
     for (i = 0; i < 3; i++)
         avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), i), pin_changed,
                                 (void *)names[i]);
-    eeprom_io(0);
+    if (eeprom_path && eeprom_load() != 0)
+        return 2;
+    if (eeprom_stuck)
+        eeprom_stuck_init();
 
     core_reset = avr->reset;
     avr->reset = on_reset;
@@ -301,10 +421,10 @@ int main(int argc, char **argv)
             break;
         }
     }
-    eeprom_io(1);
+    status = eeprom_path && eeprom_save() != 0 ? 1 : 0;
     if (logf)
         fclose(logf);
     fflush(stdout);
     fflush(stderr);
-    _exit(0);
+    _exit(status);
 }
