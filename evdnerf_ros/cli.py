@@ -416,8 +416,10 @@ def build_parser() -> argparse.ArgumentParser:
                                    "files may be pickles: import only datasets you trust.")
     p.add_argument("source", help="dataset folder")
     p.add_argument("-o", "--output", required=True, help="TRAIN.h5")
-    p.add_argument("--c-pos", type=float, help="C+ if the dataset does not say")
-    p.add_argument("--c-neg", type=float, help="C- if the dataset does not say")
+    p.add_argument("--c-pos", type=number(float, low=0, low_open=True, high=10),
+                   help="C+ if the dataset does not say, in (0, 10]")
+    p.add_argument("--c-neg", type=number(float, low=0, low_open=True, high=10),
+                   help="C- if the dataset does not say, in (0, 10]")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_import_evdnerf)
 

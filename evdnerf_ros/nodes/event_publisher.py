@@ -117,6 +117,12 @@ class EventPublisher(Node):
 
             self.scene = load_scene(p["scene"], check_cameras=False)
         self.camera = self._camera()
+        from ..limits import check_memory
+
+        # the renderer's per-ray working arrays dominate: ~256 bytes per ray at the peak
+        rays = self.camera.width * self.camera.height * (p["supersample"] ** 2 if self.scene is not None else 1)
+        check_memory(256.0 * rays, f"camera {self.camera.width}x{self.camera.height} with supersample "
+                     f"{p['supersample']}", "lower camera.width / camera.height or supersample")
         if p["encoding"] in ("evt3", "evt2") and max(self.camera.width, self.camera.height) > 2048:
             raise InputError(f"encoding {p['encoding']} carries at most 2048x2048 pixels; use encoding mono or array")
         self.t0, self.t1, self.track, self.T_robot_cam = self._trajectory()
