@@ -92,7 +92,8 @@ def atomic_output(path, *, overwrite: bool = False, directory: bool = False) -> 
 
 def name_output_error(exc: BaseException, path) -> None:
     """A write through a file object fails without naming the file: name the output it was for."""
-    if isinstance(exc, OSError) and exc.filename is None:
+    # Only an errno-carrying OSError prints its filename; others keep their own message.
+    if isinstance(exc, OSError) and exc.filename is None and exc.errno is not None:
         exc.filename = str(path)
 
 

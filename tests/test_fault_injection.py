@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import resource
+import shlex
 import shutil
 import signal
 import subprocess
@@ -447,3 +448,56 @@ def test_overwrite_replaces_our_own_outputs(ws, tmp_path):
     assert run(render, tmp_path).returncode == 0
     assert run(render, tmp_path).returncode == 2
     assert run(render + ["--overwrite"], tmp_path).returncode == 0
+
+
+# --------------------------------------------------------------------------- a real full or read-only file system
+
+def _can_mount_tmpfs() -> bool:
+    if shutil.which("unshare") is None:
+        return False
+    probe = subprocess.run(["unshare", "-m", "sh", "-c", "mount -t tmpfs -o size=16k tmpfs /mnt"],
+                           capture_output=True)
+    return probe.returncode == 0
+
+
+needs_mount = pytest.mark.skipif(not _can_mount_tmpfs(),
+                                 reason="needs a private mount namespace (root, or unshare allowed)")
+
+
+def run_on_small_fs(argv, mount: Path, *, size="32k", read_only=False):
+    """Run evdnerf with its cwd on a fresh tmpfs of `size` (read-only after mounting if asked);
+    returns the process result and what was left on that file system."""
+    mount.mkdir(exist_ok=True)
+    cmd = " ".join(shlex.quote(str(a)) for a in EVDNERF + list(argv))
+    remount = f"mount -o remount,ro {mount} && " if read_only else ""
+    script = (f"mount -t tmpfs -o size={size} tmpfs {mount} && {remount}cd {mount} && "
+              f"{{ {cmd}; rc=$?; echo \"LEFT:$(ls -A)\"; exit $rc; }}")
+    res = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True, text=True, timeout=180)
+    left = [ln for ln in res.stdout.splitlines() if ln.startswith("LEFT:")][-1][5:].split()
+    return res, left
+
+
+SMALL_FS = [
+    ("convert", ["convert", "{S}", "-o", "t.h5", "--offsets", "ground-truth"], "t.h5"),
+    ("convert-evdnerf", ["convert", "{S}", "-o", "evd", "--format", "evdnerf", "--offsets", "ground-truth"],
+     "evd"),
+    ("convert-events-h5", ["convert-events", "{E}", "out.h5"], "out.h5"),
+    ("convert-events-npz", ["convert-events", "{E}", "out.npz"], "out.npz"),
+    ("convert-events-bag", ["convert-events", "{E}", "out_bag"], "out_bag"),
+    ("simulate", ["simulate", "fork", "-o", "sess", "--views", "2", "--val-views", "0", "--resolution", "24",
+                  "24", "--frame-rate", "0", "--gt-times", "0", "--jobs", "1"], "sess"),
+    ("render-events", ["render-events", "{E}", "--start", "0", "--window", "10ms", "-o", "img.png",
+                       "--upscale", "64"], "img.png"),
+    ("train", ["train", "{T}", "-o", "run", "--iters", "3", "--no-eval"], "run"),
+]
+
+
+@needs_mount
+@pytest.mark.parametrize("read_only", [False, True], ids=["full", "read-only"])
+@pytest.mark.parametrize("case", SMALL_FS, ids=[c[0] for c in SMALL_FS])
+def test_full_or_read_only_file_system(case, read_only, ws, tmp_path):
+    _, argv, culprit = case
+    size = "1m" if read_only else ("4k" if case[0] == "render-events" else "24k")
+    res, left = run_on_small_fs(_fill(argv, tmp_path, ws), tmp_path / "mnt", size=size, read_only=read_only)
+    assert_clean_failure(res, culprit)
+    assert left == [], left
