@@ -500,4 +500,9 @@ def test_full_or_read_only_file_system(case, read_only, ws, tmp_path):
     size = "1m" if read_only else ("4k" if case[0] == "render-events" else "24k")
     res, left = run_on_small_fs(_fill(argv, tmp_path, ws), tmp_path / "mnt", size=size, read_only=read_only)
     assert_clean_failure(res, culprit)
-    assert left == [], left
+    if case[0] == "train" and not read_only:
+        # A run folder is written as training goes (config, metrics, lock): a first start that
+        # could not write its checkpoint is restarted by the same command; nothing is half-written.
+        assert left == ["run"], left
+    else:
+        assert left == [], left

@@ -2,7 +2,10 @@
 
 Defaults live here and nowhere else.  A YAML file holds a mapping of field names to
 values (any subset); an unknown key is an error that names it.  ``field`` holds the
-keyword sizes of the chosen backbone (``evdnerf_ros.field.make_field``).
+keyword sizes of the chosen backbone (``evdnerf_ros.field.make_field``).  Every key has a
+type and a documented range (``train/ranges.py``), checked whenever a config is built
+(defaults, dict, YAML file, checkpoint) and before anything is allocated; the error names
+the file and the key.
 """
 
 from __future__ import annotations
@@ -14,12 +17,16 @@ from typing import Any
 
 from ..errors import InputError
 from ..sim.logmap import LOG_EPS
+from .ranges import check_config, show
 
 LOSSES = ("bin", "bin_paper", "mse")
 
 #: Keys that may differ between a checkpoint and the resuming run (they do not change
 #: the optimisation itself, only how often it is observed or saved).
 RESUME_FREE_KEYS = ("eval_every", "checkpoint_every", "log_every")
+
+#: A config file larger than this is not a config (a training set passed by mistake?).
+MAX_CONFIG_BYTES = 1 << 20
 
 
 @dataclass
@@ -153,63 +160,11 @@ class TrainConfig:
     def __post_init__(self):
         self.validate()
 
-    def validate(self) -> None:
-        def bad(msg):
-            raise InputError(f"training config: {msg}")
-        from ..field import BACKBONES
-        if self.backbone not in BACKBONES:
-            bad(f"backbone must be one of {sorted(BACKBONES)}, got {self.backbone!r}")
-        if not isinstance(self.field, dict):
-            bad("field must be a mapping of backbone keyword sizes")
-        if self.supervision not in ("events", "frames"):
-            bad(f"supervision must be events or frames, got {self.supervision!r}")
-        if self.loss not in LOSSES:
-            bad(f"loss must be one of {list(LOSSES)}, got {self.loss!r}")
-        if int(self.n_samples) < 1 or int(self.rays) < 1:
-            bad("n_samples and rays must be >= 1")
-        if not 0.0 < float(self.crop_fraction) <= 1.0:
-            bad("crop_fraction must be in (0, 1]")
-        if not 0.0 <= float(self.event_ray_fraction) <= 1.0:
-            bad("event_ray_fraction must be in [0, 1]")
-        w = list(self.windows)
-        if not w or any(int(k) < 1 for k in w):
-            bad("windows must be a non-empty list of window counts >= 1")
-        s = [float(f) for f in self.window_switch]
-        if len(s) != len(w) - 1 or any(not 0 < f < 1 for f in s) or s != sorted(s):
-            bad(f"window_switch must hold {len(w) - 1} increasing fractions in (0, 1) "
-                f"(one per change of windows {w}), got {self.window_switch}")
-        if self.box is not None:
-            try:
-                ok = len(self.box) == 2 and all(len(r) == 3 for r in self.box) and \
-                    all(float(b) > float(a) for a, b in zip(*self.box))
-            except TypeError:
-                ok = False
-            if not ok:
-                bad(f"box must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with max > min, got {self.box}")
-        if self.learn_thresholds and self.supervision != "events":
-            bad("learn_thresholds needs supervision: events")
-        for name in ("lr", "log_eps", "mse_pred_scale", "mse_target_scale", "box_fraction",
-                     "threshold_lr"):
-            if not float(getattr(self, name)) > 0:
-                bad(f"{name} must be > 0")
-        if int(self.dynamic_resolution) < 1:
-            bad("dynamic_resolution must be >= 1")
-        if int(self.occupancy_every) < 1:
-            bad("occupancy_every must be >= 1")
-        for name in ("occupancy_threshold", "no_event_weight", "tv_weight", "time_smooth_weight", "time_l1_weight",
-                     "grad_clip", "time_curriculum", "near"):
-            if float(getattr(self, name)) < 0:
-                bad(f"{name} must be >= 0")
-        if self.iters is not None and int(self.iters) < 1:
-            bad("iters must be >= 1")
-        if self.minutes is not None and not float(self.minutes) > 0:
-            bad("minutes must be > 0")
-        for name in ("eval_every", "checkpoint_every", "log_every", "max_nonfinite_steps",
-                     "crop_warmup_iters", "occupancy_resolution", "occupancy_warmup",
-                     "time_curriculum_min", "dynamic_min_events", "dynamic_dilate_px",
-                     "dynamic_misses"):
-            if int(getattr(self, name)) < 0:
-                bad(f"{name} must be >= 0")
+    def validate(self, source: str = "training config") -> None:
+        """Every key's type and documented range (``train/ranges.py``); numbers are
+        normalised to int / float.  Errors name ``source`` and the key."""
+        check_config(self, source)
+        self.source = source           # where it came from, for later errors (not a key)
 
     # ---- (de)serialisation
     def to_dict(self) -> dict:
@@ -220,23 +175,46 @@ class TrainConfig:
         if data is None:
             data = {}
         if not isinstance(data, dict):
-            raise InputError(f"{source}: must be a mapping of option names to values")
-        names = {f.name for f in dataclasses.fields(cls)}
+            raise InputError(f"{source}: must be a mapping of option names to values, "
+                             f"got {type(data).__name__}")
+        names = [f.name for f in dataclasses.fields(cls)]
         for key in data:
             if key not in names:
-                raise InputError(f"{source}: unknown key {key!r}; known keys: {', '.join(sorted(names))}")
-        return cls(**data)
+                raise InputError(f"{source}: unknown key {show(key)}; known keys: {', '.join(sorted(names))}")
+        cfg = cls()                     # defaults, then the given keys, checked as one
+        for key, value in data.items():
+            setattr(cfg, key, value)
+        cfg.validate(source)
+        return cfg
 
     @classmethod
     def load(cls, path) -> "TrainConfig":
+        """Read a YAML mapping of option names; a file that is not one (empty, not UTF-8,
+        not YAML, too big) is an InputError naming it."""
         import yaml
         path = Path(path)
-        if not path.is_file():
+        if not path.exists():
             raise InputError(f"{path}: no such config file")
+        if not path.is_file():
+            raise InputError(f"{path}: is not a regular file; --config takes a YAML file")
+        if path.stat().st_size > MAX_CONFIG_BYTES:
+            raise InputError(f"{path}: {path.stat().st_size} bytes is too big for a training config "
+                             f"(at most {MAX_CONFIG_BYTES}); is it the right file?")
+        raw = path.read_bytes()
         try:
-            data = yaml.safe_load(path.read_text())
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise InputError(f"{path}: not UTF-8 text (byte offset {exc.start}); a training "
+                             "config is a YAML mapping of option names to values") from None
+        try:
+            data = yaml.safe_load(text)
         except yaml.YAMLError as exc:
-            raise InputError(f"{path}: not valid YAML ({exc})") from None
+            raise InputError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
+        except RecursionError:
+            raise InputError(f"{path}: YAML nested too deeply") from None
+        if data is None:
+            raise InputError(f"{path}: empty; give at least one option (e.g. `rays: 1024`), "
+                             "or leave out --config for the defaults")
         return cls.from_dict(data, source=str(path))
 
     def dump(self) -> str:

@@ -19,6 +19,14 @@ including evaluation and checkpoints.
 metrics.jsonl: one JSON object per ``eval_every`` iterations and at the end:
 {iter, wall_s, elapsed_s, loss (mean since the previous line), lr, windows, skipped,
 **eval_fn(field, context)}.
+
+Interruption: Ctrl-C (SIGINT) and SIGTERM (which the CLI raises as a ``KeyboardInterrupt``)
+are held while an iteration runs (``interrupts.DeferredInterrupts``), so they land between
+iterations; ``train`` then writes a checkpoint of the last completed iteration (atomically)
+and re-raises.  The checkpoint carries the loss sum since the last metrics line and whether
+that iteration's line was still due, so a resumed run writes the same metrics.jsonl as an
+uninterrupted one (wall-clock fields aside).  A second Ctrl-C during an iteration stops at
+once and keeps the previous checkpoint.
 """
 
 from __future__ import annotations
@@ -34,12 +42,16 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..errors import EvdnerfError, InputError, OutputExistsError
+from ..errors import EvdnerfError, InputError
 from ..field import DynamicRegion, OccupancyGrid, make_field, render_rays
+from ..limits import check_number
 from .checkpoint import (CheckpointError, global_rng_states, load_checkpoint, save_checkpoint,
                          set_global_rng_states)
-from .config import TrainConfig, resolve_config
+from .config import TrainConfig, _normal, resolve_config
+from .interrupts import DeferredInterrupts
 from .losses import bin_loss, mse_loss, no_event_hinge
+from .ranges import NUMBERS, check_training_memory
+from .rundir import LOCK_NAME, RunLock, truncate_metrics, write_text
 from .sampler import FrameSampler, RaySampler, default_box
 from .thresholds import LearnedThresholds
 
@@ -86,12 +98,12 @@ class Trainer:
         minutes = minutes if minutes is not None else (None if iters is not None else cfg.minutes)
         if iters is None and minutes is None:
             iters = DEFAULT_ITERS
-        self.iters = None if iters is None else int(iters)
-        self.minutes = None if minutes is None else float(minutes)
-        if self.iters is not None and self.iters < 1:
-            raise InputError("iters must be >= 1")
-        if self.minutes is not None and not self.minutes > 0:
-            raise InputError("minutes must be > 0")
+        self.iters = check_budget(iters, "iters", "iters")
+        self.minutes = check_budget(minutes, "minutes", "minutes")
+        # everything below allocates: size it first
+        check_training_memory(cfg, views=len(train_set.train_views),
+                              pixels=int(train_set.width) * int(train_set.height),
+                              source=cfg.source)
         random.seed(cfg.seed)
         np.random.seed(cfg.seed % (1 << 32))
         torch.manual_seed(cfg.seed)
@@ -126,7 +138,9 @@ class Trainer:
         self.elapsed_s = 0.0
         self.skipped = 0
         self.last_loss = float("nan")
-        self._acc = []
+        self._loss_sum, self._loss_n = 0.0, 0    # losses since the last metrics line
+        self._metrics_due = False      # this iteration's metrics line is not written yet
+        self._mid_step = False         # an iteration is under way (state not consistent)
 
     # ------------------------------------------------------------------ schedules
     def progress(self) -> float:
@@ -259,11 +273,15 @@ class Trainer:
                                       "thresholds": None if self.thresholds is None
                                       else self.thresholds.state_dict(),
                                       "skipped": self.skipped, "iters": self.iters,
-                                      "minutes": self.minutes})
+                                      "minutes": self.minutes, "loss_sum": self._loss_sum,
+                                      "loss_n": self._loss_n,
+                                      "metrics_due": self._metrics_due,
+                                      "last_loss": self.last_loss})
 
-    def resume(self, path) -> None:
-        """Continue from a checkpoint of this very run (same config)."""
-        data = load_checkpoint(path)
+    def resume(self, path, data: dict | None = None) -> None:
+        """Continue from a checkpoint of this very run (same config); ``data``: the
+        checkpoint already read from ``path``."""
+        data = load_checkpoint(path) if data is None else data
         theirs = TrainConfig.from_dict(data["config"], source=f"{path} (config)")
         diff = self.cfg.diff(theirs)
         if diff:
@@ -281,6 +299,10 @@ class Trainer:
         self.train_s = float(ex.get("train_s", 0.0))
         self.elapsed_s = float(ex.get("elapsed_s", self.train_s))
         self.skipped = int(ex.get("skipped", 0))
+        self._loss_sum = float(ex.get("loss_sum", 0.0))
+        self._loss_n = int(ex.get("loss_n", 0))
+        self._metrics_due = bool(ex.get("metrics_due", False))
+        self.last_loss = float(ex.get("last_loss", float("nan")))
         if self.occupancy is not None and ex.get("occupied") is not None:
             self.occupancy.occupied = ex["occupied"].clone()
         if self.thresholds is not None:
@@ -297,10 +319,11 @@ class Trainer:
     def init_from(self, path) -> None:
         """Weights only (the paper's fork -> knife transfer); optimiser and counters fresh."""
         data = load_checkpoint(path)
-        cfg = data.get("config", {})
-        if data.get("backbone") != self.cfg.backbone or cfg.get("field", {}) != self.cfg.field:
+        cfg = data.get("config") if isinstance(data.get("config"), dict) else {}
+        if (data.get("backbone") != self.cfg.backbone
+                or _normal(cfg.get("field", {})) != _normal(self.cfg.field)):
             raise CheckpointError(
-                f"{path}: --init needs the same backbone and field sizes (checkpoint: "
+                f"{path}: needs the same backbone and field sizes as this run (checkpoint: "
                 f"{data.get('backbone')} {cfg.get('field')}; here: {self.cfg.backbone} {self.cfg.field})")
         try:
             self.field.load_state_dict(data["field"])
@@ -311,11 +334,10 @@ class Trainer:
     def _metrics_line(self) -> dict:
         line = {"iter": self.iteration, "wall_s": round(self.train_s, 6),
                 "elapsed_s": round(self.elapsed_s, 6),
-                "loss": float(np.mean(self._acc)) if self._acc else None,
+                "loss": self._loss_sum / self._loss_n if self._loss_n else None,
                 "lr": self.lr(), "windows": self.n_windows(), "skipped": self.skipped}
         if self.thresholds is not None:
             line["c_pos"], line["c_neg"] = self.thresholds.values()
-        self._acc = []
         if self.eval_fn is not None:
             ctx = {"train_set": self.ts, "box": self.box, "n_samples": self.cfg.n_samples,
                    "near": self.cfg.near, "far": self.cfg.far, "background": self.cfg.background,
@@ -337,42 +359,86 @@ class Trainer:
         with open(self.run_dir / METRICS_NAME, "a") as f:
             f.write(json.dumps(_finite(line), allow_nan=False, default=float) + "\n")
 
+    def _emit_metrics(self) -> None:
+        """The due metrics line: computed (evaluation may take a while and stays
+        interruptible), then written and marked done as one step."""
+        line = self._metrics_line()
+        with DeferredInterrupts():
+            self._write_metrics(line)
+            self._loss_sum, self._loss_n = 0.0, 0
+            self._metrics_due = False
+
+    def _log_progress(self) -> None:
+        it = self.iteration
+        rate = (self.train_s / it) if it else 0.0
+        if self.iters is not None:
+            eta = rate * (self.iters - it)
+        else:
+            eta = max(0.0, self.minutes * 60 - self.train_s)
+        self.log(f"iter {it}{'/' + str(self.iters) if self.iters else ''}  "
+                 f"loss {self.last_loss:.5g}  lr {self.lr():.3g}  windows {self.n_windows()}  "
+                 f"skipped {self.skipped}  {1000 * rate:.0f} ms/it  ETA {eta:.0f} s")
+
     def train(self, until: int | None = None) -> dict:
         """Run until the budget (or iteration ``until``) is reached; writes metrics and
-        checkpoints into ``run_dir`` when set."""
+        checkpoints into ``run_dir`` when set.  On KeyboardInterrupt (Ctrl-C, SIGTERM via
+        the CLI) a checkpoint of the last completed iteration is written, then it re-raises."""
         cfg = self.cfg
         t_wall = time.perf_counter()
         elapsed0 = self.elapsed_s
-        while not self.done() and (until is None or self.iteration < until):
-            t0 = time.perf_counter()
-            value = self.step()
-            self.train_s += time.perf_counter() - t0
+        save_due = False
+
+        def clock():
             self.elapsed_s = elapsed0 + time.perf_counter() - t_wall
-            if value is not None:
-                self._acc.append(value)
-            it = self.iteration
-            if cfg.log_every and it % cfg.log_every == 0:
-                rate = (self.train_s / it) if it else 0.0
-                if self.iters is not None:
-                    eta = rate * (self.iters - it)
-                else:
-                    eta = max(0.0, self.minutes * 60 - self.train_s)
-                self.log(f"iter {it}{'/' + str(self.iters) if self.iters else ''}  "
-                         f"loss {self.last_loss:.5g}  lr {self.lr():.3g}  windows {self.n_windows()}  "
-                         f"skipped {self.skipped}  {1000 * rate:.0f} ms/it  ETA {eta:.0f} s")
-            if cfg.eval_every and it % cfg.eval_every == 0 and not self.done():
-                self._write_metrics(self._metrics_line())
-                self.elapsed_s = elapsed0 + time.perf_counter() - t_wall
-            if (self.run_dir is not None and cfg.checkpoint_every
-                    and it % cfg.checkpoint_every == 0 and not self.done()):
-                self.save()
-        if self.done():
-            self._write_metrics(self._metrics_line())
-        self.elapsed_s = elapsed0 + time.perf_counter() - t_wall
+
+        try:
+            while True:
+                if self._metrics_due:
+                    self._emit_metrics()
+                    clock()
+                if save_due:
+                    self.save()
+                    save_due = False
+                if self.done() or (until is not None and self.iteration >= until):
+                    break
+                with DeferredInterrupts():
+                    self._mid_step = True
+                    t0 = time.perf_counter()
+                    value = self.step()
+                    self.train_s += time.perf_counter() - t0
+                    clock()
+                    if value is not None:
+                        self._loss_sum += value
+                        self._loss_n += 1
+                    it = self.iteration
+                    self._metrics_due = bool(cfg.eval_every and it % cfg.eval_every == 0) or self.done()
+                    save_due = bool(self.run_dir is not None and cfg.checkpoint_every
+                                    and it % cfg.checkpoint_every == 0 and not self.done())
+                    self._mid_step = False
+                if cfg.log_every and self.iteration % cfg.log_every == 0:
+                    self._log_progress()
+        except KeyboardInterrupt:
+            if self.run_dir is not None and not self._mid_step:
+                clock()
+                path = self.save()
+                self.log(f"interrupted: checkpoint of iteration {self.iteration} written to {path}; "
+                         "run the same command again to resume")
+            raise
+        clock()
         ckpt = self.save() if self.run_dir is not None else None
         return {"iterations": self.iteration, "wall_s": self.train_s, "elapsed_s": self.elapsed_s,
                 "loss": self.last_loss, "skipped": self.skipped,
                 "checkpoint": str(ckpt) if ckpt else None, "box": self.box.tolist()}
+
+
+def check_budget(value, name: str, key: str):
+    """``iters`` / ``minutes`` (named as the caller knows them) in the config's range."""
+    low, high, kind, low_open = NUMBERS[key]
+    value = check_number(value, name, low=low, high=high, low_open=low_open,
+                         integer=kind == "int", allow_none=True)
+    if value is None:
+        return None
+    return int(value) if kind == "int" else float(value)
 
 
 def _finite(obj):
@@ -394,47 +460,100 @@ def run_train(train_h5, run_dir, *, config=None, minutes: float | None = None,
               log: Callable = print, eval_fn: Callable | None = None) -> dict:
     """Train on TRAIN.h5 into RUN (``evdnerf train``).
 
-    RUN holds config.yaml, checkpoint.pt and metrics.jsonl.  A RUN with a checkpoint is
-    resumed (its config is used when ``config`` is None; a different one is an error)
-    unless ``overwrite``, which deletes those files first.  ``init``: a checkpoint whose
-    weights start the new run (fork -> knife transfer).  ``iters`` is the run's total
-    iteration count (also on resume); ``minutes`` its total training minutes.
+    RUN holds config.yaml, checkpoint.pt, metrics.jsonl and the lock file
+    ``.evdnerf-train.lock`` (``rundir``): while a run lasts a second one into RUN fails at
+    once.  A RUN with a checkpoint is resumed (its config is used when ``config`` is None;
+    a different one is an error) and metrics.jsonl cut back to the checkpoint's iteration.
+    A RUN that ``train`` made but that holds no checkpoint yet (a first start stopped
+    early) starts again from iteration 0, replacing only those files.  ``overwrite`` starts
+    afresh likewise, and the old files go only once the new run is built, so a bad config
+    or training set destroys nothing.  ``init``: a checkpoint whose weights start the new
+    run (fork -> knife transfer).  ``iters`` is the run's total iteration count (also on
+    resume); ``minutes`` its total training minutes (both range-checked as ``--iters`` /
+    ``--minutes``).  Ctrl-C or SIGTERM writes a checkpoint first (``Trainer.train``): the
+    same command again resumes.
     """
+    iters = check_budget(iters, "--iters", "iters")
+    minutes = check_budget(minutes, "--minutes", "minutes")
+    run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise InputError(f"{run_dir}: exists and is not a folder; choose a folder for the run")
+    given = None if config is None else resolve_config(config)   # checked before RUN is touched
+    created = not run_dir.exists()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with RunLock(run_dir, log=log) as lock:
+        try:
+            return _train_locked(train_h5, run_dir, lock, given, iters=iters, minutes=minutes,
+                                 init=init, overwrite=overwrite, log=log, eval_fn=eval_fn)
+        except BaseException:
+            if created:
+                _remove_if_empty(run_dir, lock)
+            raise
+
+
+def _remove_if_empty(run_dir: Path, lock: RunLock) -> None:
+    """A run folder this call made and that holds nothing but the lock: leave none behind."""
+    try:
+        if [q.name for q in run_dir.iterdir()] == [LOCK_NAME]:
+            lock.path.unlink()
+            run_dir.rmdir()
+    except OSError:
+        pass
+
+
+def _train_locked(train_h5, run_dir: Path, lock: RunLock, given, *, iters, minutes, init,
+                  overwrite, log, eval_fn) -> dict:
     from ..io.trainingset import TrainingSet
 
-    run_dir = Path(run_dir)
-    ckpt = run_dir / CHECKPOINT_NAME
-    ours = [run_dir / n for n in (CHECKPOINT_NAME, METRICS_NAME, CONFIG_NAME)]
-    if run_dir.exists() and not run_dir.is_dir():
-        raise InputError(f"{run_dir}: exists and is not a folder")
-    if overwrite:
-        for p in ours:
-            if p.exists():
-                p.unlink()
-    resume = ckpt.is_file()
+    ckpt, metrics, config_path = (run_dir / n for n in (CHECKPOINT_NAME, METRICS_NAME, CONFIG_NAME))
+    for p in (ckpt, metrics, config_path):
+        if (p.exists() or p.is_symlink()) and not p.is_file():
+            raise InputError(f"{p}: is not a regular file; remove it or choose another run folder")
+    resume = ckpt.is_file() and not overwrite
+    leftovers = [p.name for p in (config_path, metrics) if p.exists()]
+    if not resume and not overwrite and leftovers and not lock.made_by_train:
+        raise InputError(f"{run_dir}: holds {' and '.join(leftovers)} but no {CHECKPOINT_NAME}, and "
+                         f"`evdnerf train` did not make this folder (no {LOCK_NAME}); remove them, "
+                         "pass --overwrite to replace them, or choose another folder")
     if resume and init is not None:
         raise InputError(f"{run_dir}: already holds a checkpoint to resume; --init starts a new run "
-                         "(choose another RUN or pass overwrite)")
-    if not resume and any(p.exists() for p in ours):
-        raise OutputExistsError(run_dir)
-    if resume and config is None:
-        cfg = TrainConfig.from_dict(load_checkpoint(ckpt)["config"], source=f"{ckpt} (config)")
+                         "(choose another RUN or pass --overwrite)")
+    data = None
+    if resume:
+        try:
+            data = load_checkpoint(ckpt)
+        except CheckpointError as exc:
+            raise CheckpointError(f"{exc}; or pass --overwrite to start {run_dir} afresh") from None
+    if given is not None:
+        cfg = given
+    elif resume:
+        cfg = TrainConfig.from_dict(data["config"], source=f"{ckpt} (config)")
     else:
-        cfg = resolve_config(config)
-    run_dir.mkdir(parents=True, exist_ok=True)
+        cfg = TrainConfig()
     with TrainingSet(train_h5) as ts:
         tr = Trainer(ts, cfg, run_dir=run_dir, iters=iters, minutes=minutes, eval_fn=eval_fn,
                      log=log)
         if resume:
-            tr.resume(ckpt)
-            log(f"resuming {run_dir} at iteration {tr.iteration}")
-        elif init is not None:
-            tr.init_from(init)
-            log(f"initialised weights from {init}")
-        (run_dir / CONFIG_NAME).write_text(cfg.dump())
+            tr.resume(ckpt, data)
+            dropped = truncate_metrics(metrics, tr.iteration)
+            log(f"resuming {run_dir} at iteration {tr.iteration}" + (
+                f" (dropped {dropped} metrics lines from after that checkpoint)" if dropped else ""))
+        else:
+            if init is not None:
+                try:
+                    tr.init_from(init)
+                except CheckpointError as exc:
+                    raise CheckpointError(f"--init {exc}") from None
+                log(f"initialised weights from {init}")
+            if leftovers and not overwrite:
+                log(f"{run_dir}: no checkpoint from the earlier start; starting again from iteration 0")
+            # the old run's files go only now that the new run is built
+            for p in (ckpt, metrics):
+                if p.exists():
+                    p.unlink()
+        write_text(config_path, cfg.dump())
         summary = tr.train()
-    summary.update({"run_dir": str(run_dir), "resumed": resume,
-                    "metrics": str(run_dir / METRICS_NAME)})
+    summary.update({"run_dir": str(run_dir), "resumed": resume, "metrics": str(metrics)})
     return summary
 
 
