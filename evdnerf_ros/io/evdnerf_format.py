@@ -60,6 +60,7 @@ from __future__ import annotations
 import json
 import math
 import pickle
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +69,9 @@ from ..atomic import atomic_output
 from ..errors import FormatError, InputError
 from ..events.slicing import window_edges
 from ..events.types import EVENT_DTYPE
-from .trainingset import TrainingSet, ViewData, write_training_set
+from .guard import check_value, read_text, writing
+from .npz import check_npy_file
+from .trainingset import C_MAX, T_LIMIT, TrainingSet, ViewData, write_training_set
 
 EXT_KEY = "evdnerf_ros"
 EXT_VERSION = 1
@@ -195,7 +198,7 @@ def _export(ts: TrainingSet, out_dir: Path, n: int, event_time: str, events: boo
     edges = window_edges(ts.t_start, ts.t_end, n)
     W, H = ts.width, ts.height
     summary = {"out": str(out_dir), "n_windows": n, "splits": {}}
-    with atomic_output(out_dir, overwrite=overwrite, directory=True) as tmp:
+    with atomic_output(out_dir, overwrite=overwrite, directory=True) as tmp, writing(out_dir):
         tmp.mkdir()
         for split in SPLITS:
             views = ts.train_views if split == "train" else ts.val_views
@@ -252,19 +255,69 @@ def _export(ts: TrainingSet, out_dir: Path, n: int, event_time: str, events: boo
 
 
 def _read_json(path: Path) -> dict:
+    text = read_text(path, what="transforms json")
     try:
-        meta = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise FormatError(f"not readable JSON ({exc})", source=str(path)) from None
+        meta = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise FormatError(f"not readable JSON ({type(exc).__name__}: {exc})", source=str(path)) from None
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
         raise FormatError("needs a non-empty `frames` list", source=str(path))
+    for i, fr in enumerate(meta["frames"]):
+        if not isinstance(fr, dict):
+            raise FormatError(f"frames[{i}] must be an object with file_path, time, transform_matrix",
+                              source=str(path))
+        t = fr.get("time")
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0.0 <= t <= 1.0:
+            raise FormatError(f"frames[{i}].time must be a number in [0, 1], got {t!r}", source=str(path))
+    ext = meta.get(EXT_KEY)
+    if ext is not None:
+        _check_extension(ext, str(path), len(meta["frames"]))
     return meta
+
+
+def _check_extension(ext, where: str, n_frames: int) -> None:
+    """Our extension's fields (see the module doc), checked before any is used."""
+    if not isinstance(ext, dict):
+        raise FormatError(f"`{EXT_KEY}` must be an object", source=where)
+    name = f"{where}: {EXT_KEY}"
+    for k in ("t_start_ns", "t_end_ns"):
+        check_value(ext.get(k), f"{name}.{k}", integer=True, low=-T_LIMIT, high=T_LIMIT)
+    if ext["t_end_ns"] <= ext["t_start_ns"]:
+        raise FormatError(f"{EXT_KEY}.t_end_ns must be after t_start_ns", source=where)
+    for k in ("width", "height"):
+        check_value(ext.get(k), f"{name}.{k}", integer=True, low=1, high=65535)
+    for k in ("c_pos", "c_neg"):
+        if k in ext:
+            check_value(ext[k], f"{name}.{k}", low=0, low_open=True, high=C_MAX)
+    if "downsample" in ext:
+        check_value(ext["downsample"], f"{name}.downsample", integer=True, low=1, high=64)
+    _check_K_list(ext.get("K"), f"{name}.K")
+    views = ext.get("views")
+    if views is not None:
+        if not isinstance(views, list):
+            raise FormatError(f"{EXT_KEY}.views must be a list", source=where)
+        for i, v in enumerate(views):
+            if not isinstance(v, dict) or not isinstance(v.get("name"), str) or not v["name"]:
+                raise FormatError(f"{EXT_KEY}.views[{i}] needs a `name`", source=where)
+            check_value(v.get("num_frames"), f"{name}.views[{i}].num_frames", integer=True, low=2,
+                         high=n_frames)
+            if "K" in v:
+                _check_K_list(v["K"], f"{name}.views[{i}].K")
+
+
+def _check_K_list(K, name: str) -> None:
+    try:
+        ok = np.asarray(K, np.float64).shape == (3, 3)
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise InputError(f"{name}: must be a 3x3 list of numbers")
 
 
 def _pose_cv(M, where: str) -> np.ndarray:
     try:
         T = np.asarray(M, np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise FormatError("transform_matrix is not numeric", source=where) from None
     if T.shape == (3, 4):
         T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
@@ -309,21 +362,31 @@ def _group_views(frames: list, ext: dict | None, where: str) -> list[list[int]]:
     return groups
 
 
+#: What np.load / pickle raise on a damaged file (a pickle can raise nearly anything: their
+#: raw events are pickles, see the module doc).
+_LOAD_ERRORS = (OSError, ValueError, TypeError, EOFError, pickle.UnpicklingError, AttributeError, ImportError,
+                IndexError, KeyError, UnicodeError, OverflowError, RecursionError, MemoryError, struct.error)
+
+
 def _load_raw_events(src: Path, split: str):
     npy, pkl = src / f"data_{split}.npy", src / f"data_{split}.pkl"
     if npy.is_file():
+        check_npy_file(npy)
         try:
             obj = np.load(npy, allow_pickle=True)
-        except (OSError, ValueError, pickle.UnpicklingError, EOFError) as exc:
-            raise FormatError(f"unreadable ({exc})", source=str(npy)) from None
+        except _LOAD_ERRORS as exc:
+            raise FormatError(f"unreadable ({type(exc).__name__}: {exc})", source=str(npy)) from None
+        if obj.ndim == 0:
+            raise FormatError("holds a single value, expected one (N, 4) event array per view", source=str(npy))
         return (list(obj) if obj.dtype == object else [obj[i] for i in range(obj.shape[0])]), npy
     if pkl.is_file():
         try:
             with open(pkl, "rb") as f:
                 obj = pickle.load(f)  # noqa: S301 - their format; see the module doc
-        except (OSError, pickle.UnpicklingError, EOFError, ValueError) as exc:
-            raise FormatError(f"unreadable ({exc})", source=str(pkl)) from None
-        return list(obj), pkl
+            obj = list(obj)
+        except _LOAD_ERRORS as exc:
+            raise FormatError(f"unreadable ({type(exc).__name__}: {exc})", source=str(pkl)) from None
+        return obj, pkl
     return None, None
 
 
@@ -364,10 +427,7 @@ def import_evdnerf(src_dir, out_h5, *, c_pos: float | None = None, c_neg: float 
             if not dpath.is_file():
                 raise InputError(f"{src}: split {split} has neither raw events (data_{split}.npy / .pkl) nor event "
                                  f"frames (data_frames_{split}.npy); nothing to import")
-            try:
-                dframes = np.load(dpath, mmap_mode="r")
-            except (OSError, ValueError) as exc:
-                raise FormatError(f"unreadable ({exc})", source=str(dpath)) from None
+            dframes = _load_frames_npy(dpath)
             if dframes.ndim != 4 or dframes.shape[0] != len(groups):
                 raise FormatError(f"shape {dframes.shape} does not match {len(groups)} views (V, T-1, H, W)",
                                   source=str(dpath))
@@ -382,7 +442,9 @@ def import_evdnerf(src_dir, out_h5, *, c_pos: float | None = None, c_neg: float 
         else:
             dpath = src / f"data_frames_{split}.npy"
             if dpath.is_file():
-                hw = tuple(int(v) for v in np.load(dpath, mmap_mode="r").shape[2:])
+                hw = tuple(int(v) for v in _load_frames_npy(dpath).shape[2:])
+                if len(hw) != 2:
+                    raise FormatError("expected (V, T-1, H, W) event frames", source=str(dpath))
             else:
                 from PIL import Image
 
@@ -403,10 +465,11 @@ def import_evdnerf(src_dir, out_h5, *, c_pos: float | None = None, c_neg: float 
         if ext is not None:
             K_default = np.asarray(ext["K"], np.float64)
         else:
-            if "focal" in meta and float(meta["focal"]) > 0:
-                f = float(meta["focal"])
+            focal, ang = meta.get("focal"), meta.get("camera_angle_x", np.nan)
+            if isinstance(focal, (int, float)) and not isinstance(focal, bool) and 0 < focal < 1e12:
+                f = float(focal)
             else:
-                ang = float(meta.get("camera_angle_x", np.nan))
+                ang = float(ang) if isinstance(ang, (int, float)) and not isinstance(ang, bool) else np.nan
                 if not (math.isfinite(ang) and 0 < ang < math.pi):
                     raise FormatError("camera_angle_x must be an angle in (0, pi) radians", source=where)
                 f = 0.5 * W / math.tan(0.5 * ang)
@@ -461,12 +524,17 @@ def _events_from_array(arr, t_start: int, t_end: int, mode: str, W: int, H: int,
     if a.ndim != 2 or a.shape[1] != 4 or a.dtype.kind not in "iuf":
         raise FormatError(f"events must be an (N, 4) numeric array [t, x, y, p], got shape {a.shape} "
                           f"dtype {a.dtype}", source=where)
-    if a.dtype.kind == "f":
-        if not np.all(np.isfinite(a)):
-            raise FormatError("events contain NaN or inf", source=where)
-        c = np.round(a[:, 0]).astype(np.int64)
-    else:
-        c = a[:, 0].astype(np.int64)
+    if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+        raise FormatError("events contain NaN or inf", source=where)
+    # times outside the file's range [0, time of t_end - 1] lie outside the set: drop them before
+    # converting, so that garbage values cannot overflow the int64 arithmetic
+    hi = int(to_file_time(np.array([t_end - 1], np.int64), t_start, t_end, mode)[0])
+    col = np.round(a[:, 0]) if a.dtype.kind == "f" else a[:, 0]
+    inside = (col >= 0) & (col <= hi)
+    outside = int(a.shape[0] - np.count_nonzero(inside))
+    if outside:
+        a, col = a[inside], col[inside]
+    c = col.astype(np.int64)
     x, y = a[:, 1], a[:, 2]
     if a.size and (x.min() < 0 or y.min() < 0 or x.max() >= W or y.max() >= H
                    or (a.dtype.kind == "f" and (np.any(x != np.round(x)) or np.any(y != np.round(y))))):
@@ -479,7 +547,19 @@ def _events_from_array(arr, t_start: int, t_end: int, mode: str, W: int, H: int,
         ev = ev[np.argsort(ev["t"], kind="stable")]
     keep = (ev["t"] >= t_start) & (ev["t"] < t_end)
     dropped = int(ev.size - np.count_nonzero(keep))
-    return (ev[keep] if dropped else ev), dropped
+    return (ev[keep] if dropped else ev), dropped + outside
+
+
+def _load_frames_npy(path: Path) -> np.ndarray:
+    """Their (V, T-1, H, W) event frames, memory-mapped (a header larger than the file is refused)."""
+    check_npy_file(path, loads=False)
+    try:
+        arr = np.load(path, mmap_mode="r")
+    except _LOAD_ERRORS as exc:
+        raise FormatError(f"unreadable ({type(exc).__name__}: {exc})", source=str(path)) from None
+    if arr.dtype.kind not in "iuf":
+        raise FormatError(f"event frames have dtype {arr.dtype}, expected float32", source=str(path))
+    return arr
 
 
 def run_import_evdnerf(src_dir, out_h5, *, c_pos: float | None = None, c_neg: float | None = None,

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import FormatError, InputError
 from ..events.types import empty_triggers
 
 DEFAULT_TOPIC = "/event_camera/events"
@@ -54,19 +54,33 @@ def container_kind(path) -> str:
                      ".mcap, .db3 or a rosbag2 directory")
 
 
-def read_event_file(path, *, topic: str | None = None) -> EventFile:
+def read_event_file(path, *, topic: str | None = None, need_geometry: bool = True) -> EventFile:
+    """Read any container (see the module doc). A RAW file whose header gives no geometry is
+    refused unless `need_geometry` is False (width / height are then None)."""
     path = Path(path)
     kind = container_kind(path)
     if not path.exists():
         raise InputError(f"{path}: no such file or directory")
     if kind != "rosbag2" and kind != "rosbag1" and topic is not None:
         raise InputError(f"{path}: --topic applies only to bags, not to {kind} files")
+    if kind in ("raw", "npz", "h5") and path.is_dir():
+        raise InputError(f"{path}: is a folder, not a {kind} file")
     if kind == "raw":
-        from .raw import read_raw
+        from .raw import read_raw, read_raw_header
 
+        header = read_raw_header(path)          # refuse a header without geometry before decoding
+        if (header.width is None or header.height is None) and need_geometry:
+            raise FormatError("the RAW header gives no sensor geometry; add a header line "
+                              "'% geometry WIDTHxHEIGHT' (before '% end')", source=str(path))
         decoded, header = read_raw(path)
-        return EventFile(decoded.events, decoded.triggers, header.width, header.height, kind,
-                         header.encoding)
+        ev = decoded.events
+        known = header.width is not None and header.height is not None
+        if known and ev.size and (int(ev["x"].max()) >= header.width or int(ev["y"].max()) >= header.height):
+            i = int(np.flatnonzero((ev["x"] >= header.width) | (ev["y"] >= header.height))[0])
+            raise FormatError(f"event {i} at x={int(ev['x'][i])}, y={int(ev['y'][i])} lies outside the "
+                              f"header's {header.width}x{header.height} geometry; the file is damaged or its "
+                              "header is wrong", source=str(path))
+        return EventFile(ev, decoded.triggers, header.width, header.height, kind, header.encoding)
     if kind == "npz":
         from .npz import read_npz
 

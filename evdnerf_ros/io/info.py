@@ -31,7 +31,7 @@ def describe(path, *, topic: str | None = None) -> dict:
         elif topic not in bag.topics:
             raise InputError(f"{path}: no topic {topic!r}; topics: "
                              f"{', '.join(bag.topics) or 'none'}")
-    data = read_event_file(path, topic=topic)
+    data = read_event_file(path, topic=topic, need_geometry=False)
     ev = data.events
     n = int(ev.size)
     duration = int(ev["t"][-1] - ev["t"][0]) if n > 1 else 0

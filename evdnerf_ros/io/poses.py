@@ -23,12 +23,14 @@ finite values, unit quaternions, strictly increasing times.
 from __future__ import annotations
 
 import csv
+import io
 from pathlib import Path
 
 import numpy as np
 import yaml
 
 from ..errors import InputError
+from .guard import read_text
 from .messages import check_rigid, quaternion_to_rotation, stamp_to_ns
 
 POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped", "tf2_msgs/msg/TFMessage")
@@ -39,7 +41,7 @@ def _pose(src: str, i: int, position, orientation) -> np.ndarray:
     try:
         p = np.asarray(position, dtype=np.float64).reshape(3)
         q = np.asarray(orientation, dtype=np.float64).reshape(4)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"{src}: pose {i}: position needs 3 numbers and orientation 4 (x, y, z, w)") from None
     if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
         raise InputError(f"{src}: pose {i} has NaN or infinite values (position {p.tolist()}, "
@@ -66,23 +68,40 @@ def check_times(src: str, t: np.ndarray) -> np.ndarray:
     return t
 
 
+#: Pose times (ns) beyond +-T_LIMIT are refused (int64 arithmetic on them must not overflow).
+T_LIMIT = 2**62
+
+
 def _seconds_to_ns(src, i, value) -> int:
     try:
         v = float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"{src}: pose {i}: time {value!r} is not a number") from None
     if not np.isfinite(v):
         raise InputError(f"{src}: pose {i}: time is {value!r}; every pose needs a finite time")
+    if abs(v) * 1e9 > T_LIMIT:
+        raise InputError(f"{src}: pose {i}: time {value!r} s is beyond +-{T_LIMIT / 1e9:.3g} s")
     return int(round(v * 1e9))
+
+
+def _ns(src, i, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InputError(f"{src}: pose {i}: t_ns must be an integer number of nanoseconds, got {value!r}")
+    if abs(value) > T_LIMIT:
+        raise InputError(f"{src}: pose {i}: t_ns {value} is beyond +-2**62 ns")
+    return value
 
 
 def load_yaml_poses(path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     src = str(path)
+    text = read_text(path, what="trajectory file")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise InputError(f"{src}: not valid YAML ({exc})") from None
+        raise InputError(f"{src}: not valid YAML ({' '.join(str(exc).split())})") from None
+    except (RecursionError, ValueError, OverflowError) as exc:
+        raise InputError(f"{src}: not a usable YAML document ({type(exc).__name__})") from None
     poses = data.get("poses") if isinstance(data, dict) else None
     if not isinstance(poses, list):
         raise InputError(f"{src}: expected a mapping with a 'poses' list of {{t, position, orientation}}")
@@ -91,9 +110,7 @@ def load_yaml_poses(path) -> tuple[np.ndarray, np.ndarray]:
         if not isinstance(p, dict) or "position" not in p or "orientation" not in p or not ({"t", "t_ns"} & set(p)):
             raise InputError(f"{src}: pose {i} needs t (s) or t_ns, position [x, y, z] and orientation [x, y, z, w]")
         if "t_ns" in p:
-            if not isinstance(p["t_ns"], int) or isinstance(p["t_ns"], bool):
-                raise InputError(f"{src}: pose {i}: t_ns must be an integer number of nanoseconds")
-            ts.append(p["t_ns"])
+            ts.append(_ns(src, i, p["t_ns"]))
         else:
             ts.append(_seconds_to_ns(src, i, p["t"]))
         Ts.append(_pose(src, i, p["position"], p["orientation"]))
@@ -103,8 +120,11 @@ def load_yaml_poses(path) -> tuple[np.ndarray, np.ndarray]:
 def load_csv_poses(path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     src = str(path)
-    with open(path, newline="", encoding="utf-8") as f:
-        rows = list(csv.DictReader(f))
+    text = read_text(path, what="trajectory file")
+    try:
+        rows = list(csv.DictReader(io.StringIO(text, newline="")))
+    except csv.Error as exc:
+        raise InputError(f"{src}: not a readable CSV file ({exc})") from None
     if not rows:
         raise InputError(f"{src}: no rows; expected a header t_ns (or t),x,y,z,qx,qy,qz,qw and one row per pose")
     cols = set(rows[0])
@@ -115,11 +135,11 @@ def load_csv_poses(path) -> tuple[np.ndarray, np.ndarray]:
     for i, r in enumerate(rows):
         try:
             if "t_ns" in cols:
-                ts.append(int(r["t_ns"]))
+                ts.append(_ns(src, i, int(r["t_ns"])))
             else:
                 ts.append(_seconds_to_ns(src, i, r["t"]))
             vals = [float(r[k]) for k in ("x", "y", "z", "qx", "qy", "qz", "qw")]
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise InputError(f"{src}: line {i + 2}: not a number in {r}") from None
         Ts.append(_pose(f"{src}: line {i + 2}", i, vals[:3], vals[3:]))
     return check_times(src, np.array(ts, np.int64)), np.array(Ts)

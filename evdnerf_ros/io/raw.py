@@ -26,6 +26,8 @@ from ..errors import FormatError, InputError, OutputExistsError
 from ..events.codecs import Decoded, make_decoder, make_encoder
 from ..events.codecs._common import check_events_for_us, concat_triggers, triggers_to_us
 from ..events.types import EVENT_DTYPE, MAX_SENSOR_SIZE
+from ..limits import check_memory
+from .guard import writing
 
 _MAX_LINE = 1 << 16
 _MAX_HEADER = 1 << 24
@@ -213,6 +215,8 @@ def _read_body(path, header_bytes: int, piece: int, source: str, on_piece=None) 
     `on_piece(start, view)` sees each piece while it is still in cache."""
     with open(path, "rb", buffering=0) as f:
         size = os.fstat(f.fileno()).st_size
+        check_memory(max(size - header_bytes, 0), f"{source}: {size - header_bytes} body bytes",
+                     "read it chunk by chunk with iter_raw(), or on a machine with more memory")
         body = np.empty(max(size - header_bytes, 0), np.uint8)
         f.seek(header_bytes)
         got = 0
@@ -264,6 +268,9 @@ def read_raw(path, *, chunk_bytes: int = 64 << 20, time_low_carry: bool = False
         total = sum(counts)
     else:
         total = sum(dec.count_events(body[a:a + chunk]) for a in range(0, body.shape[0], chunk))
+    # a few vector words can declare many events: size the output against the budget first
+    check_memory(total * EVENT_DTYPE.itemsize + body.nbytes, f"{source}: {total} events",
+                 "read it chunk by chunk with iter_raw(), or on a machine with more memory")
     out = np.empty(total, EVENT_DTYPE)
     pos = 0
     trigs = []
@@ -342,7 +349,7 @@ def write_raw(path, events, *, width: int, height: int, encoding: str = "evt3",
                              f"{width}x{height} geometry; give the sensor's real width and height")
     triggers, _ = triggers_to_us(triggers, 0, name, max_id=16 if encoding == "evt3" else 32)
     enc = make_encoder(encoding)
-    with atomic_output(path) as tmp, open(tmp, "wb") as f:
+    with atomic_output(path) as tmp, writing(path), open(tmp, "wb") as f:
         f.write(_header_text(encoding, int(width), int(height)))
         n = events.shape[0]
         if triggers.size:

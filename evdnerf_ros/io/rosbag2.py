@@ -60,10 +60,11 @@ from typing import Any
 
 import numpy as np
 
-from ..atomic import atomic_output
+from ..atomic import atomic_output, name_output_error
 from ..errors import EvdnerfError, FormatError, InputError, OutputExistsError
 from ..events.types import (EVENT_DTYPE, MAX_SENSOR_SIZE, TRIGGER_DTYPE, as_events, empty_events, empty_triggers,
                             validate_events)
+from ..limits import check_memory, memory_budget
 from . import event_messages as em
 from .typestore import DVS_EVENT_ARRAY, EVENT_PACKET, ros1_typestore, ros2_typestore
 
@@ -90,9 +91,12 @@ class _Aborted(Exception):
 class _AtomicOutput:
     """Holds :func:`evdnerf_ros.atomic.atomic_output` open across open() / close() calls."""
 
-    def __init__(self, path):
+    def __init__(self, path, *, directory: bool = True):
         self._stack = ExitStack()
-        self.tmp_path = self._stack.enter_context(atomic_output(path, directory=True))
+        self.tmp_path = self._stack.enter_context(atomic_output(path, directory=directory))
+        if not directory:
+            # a ROS 1 bag is one file, and its writer refuses a path that exists already
+            self.tmp_path.unlink()
 
     def publish(self):
         self._stack.close()
@@ -169,7 +173,7 @@ class _EventBagWriter(abc.ABC):
     def open(self):
         if self._state != "new":
             raise InputError(f"{self.path}: writer already {self._state}")
-        self._out = _AtomicOutput(self.path)
+        self._out = _AtomicOutput(self.path, directory=not self._ros1)
         try:
             self._writer = self._make_writer(self._out.tmp_path)
             self._writer.open()
@@ -190,7 +194,8 @@ class _EventBagWriter(abc.ABC):
             self._writer.close()
             self._writer = None
             self._out.publish()
-        except BaseException:
+        except BaseException as exc:
+            name_output_error(exc, self.path)
             self.abort()
             raise
         self._state = "closed"
@@ -246,7 +251,11 @@ class _EventBagWriter(abc.ABC):
         return conn
 
     def _write_raw(self, conn, t_ns, data):
-        self._writer.write(conn, t_ns, data)
+        try:
+            self._writer.write(conn, t_ns, data)
+        except OSError as exc:          # a full disk: the error names the bag, not a file object
+            name_output_error(exc, self.path)
+            raise
 
     def add_topic(self, topic: str, msgtype: str) -> None:
         """Declare a topic now (a bag then lists it even if no message follows)."""
@@ -777,16 +786,26 @@ def _decoded(dec):
 
 class _Growing:
     """A 1-D array filled batch by batch: amortised growth instead of a final concatenate
-    (one copy less, and no list of parts held next to the result)."""
+    (one copy less, and no list of parts held next to the result).
 
-    def __init__(self, dtype):
+    Growth is checked against the memory budget (`what` names the bag and topic); a size
+    hint (from the bag index's message count, which a damaged or crafted bag can inflate) is
+    only followed while it fits in a quarter of the budget."""
+
+    def __init__(self, dtype, what: str = "events"):
         self.buf = np.empty(0, dtype)
         self.n = 0
         self._slot = None
+        self.what = what
 
     def reserve(self, k: int, *, hint_total: int = 0) -> np.ndarray:
         need = self.n + k
         if need > self.buf.size:
+            item = self.buf.dtype.itemsize
+            check_memory(2 * need * item, f"{self.what}: {need} events so far",
+                         "read the topic in pieces (iter_event_packets) or on a machine with more memory")
+            if hint_total * item > memory_budget() // 4:
+                hint_total = 0
             new = np.empty(max(need, int(self.buf.size * 1.5), hint_total), self.buf.dtype)
             new[:self.n] = self.buf[:self.n]
             self.buf = new
@@ -1008,7 +1027,8 @@ def read_events(path, topic: str = DEFAULT_EVENT_TOPIC, *, sort: bool = False) -
     Events must come out sorted by time; otherwise FormatError, unless ``sort=True``
     (stable sort by t).
     """
-    ev_acc, tr_acc = _Growing(EVENT_DTYPE), _Growing(TRIGGER_DTYPE)
+    ev_acc = _Growing(EVENT_DTYPE, f"{path}: topic {topic}")
+    tr_acc = _Growing(TRIGGER_DTYPE, f"{path}: topic {topic}: triggers")
     with open_bag(path) as bag:
         dec = _TopicDecoder(bag, topic)
         dec.sink = ev_acc

@@ -59,6 +59,14 @@ opens the file.
 Reading: :class:`TrainingSet` (a context manager) gives the views, intrinsics, poses, split
 and thresholds, and reads windows by binary search through the time index, in chunks, so a
 1e8-event set never has to sit in RAM.
+
+Damaged files: opening checks the whole layout above (attributes, ranks, dtypes, lengths,
+the time index, K and poses) before reading any event, and checks declared sizes against the
+memory budget (:func:`evdnerf_ros.limits.check_memory`); every block of events read later is
+checked against the geometry, polarity and time order (scaleoffset has no checksum, so a
+flipped bit can give an impossible pixel), and every HDF5 failure becomes a FormatError
+naming the file and the view. Writing goes through :mod:`evdnerf_ros.io.guard`: a full disk
+or a file-size limit ends in one error naming the output, never in a crash inside HDF5.
 """
 
 from __future__ import annotations
@@ -73,6 +81,8 @@ import numpy as np
 from ..atomic import atomic_output
 from ..errors import FormatError, InputError
 from ..events.types import EVENT_DTYPE, validate_events
+from ..limits import check_memory
+from .guard import h5_close, h5_create, h5_dataset, h5_memory, h5_number, h5_open, h5_reading, h5_text
 
 LAYOUT = "evdnerf_ros.trainingset"
 LAYOUT_VERSION = 1
@@ -82,12 +92,11 @@ COMPRESSIONS = ("scaleoffset", "gzip")
 SPLITS = ("train", "val")
 #: Events per block when a reader streams through a long window.
 READ_BLOCK = 1 << 22
-
-
-def _h5py():
-    import h5py
-
-    return h5py
+#: Contrast thresholds (log-intensity units) outside (0, C_MAX] are refused.
+C_MAX = 10.0
+#: Times (ns) beyond this magnitude are refused (int64 arithmetic on them must not overflow).
+T_LIMIT = 2**62
+_FIX = "the training set is damaged; write it again with `evdnerf convert`"
 
 
 def _filters(compression: str) -> dict:
@@ -122,8 +131,9 @@ def check_pose(T, what: str, *, tol: float = 1e-6) -> np.ndarray:
     if not np.all(np.isfinite(T)):
         raise InputError(f"{what}: contains NaN or inf; every pose must be finite")
     R = T[:3, :3]
-    err = float(np.abs(R.T @ R - np.eye(3)).max())
-    det = float(np.linalg.det(R))
+    with np.errstate(all="ignore"):              # absurd entries: the checks below say so
+        err = float(np.abs(R.T @ R - np.eye(3)).max())
+        det = float(np.linalg.det(R))
     if err > tol or abs(det - 1) > tol or not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
         raise InputError(f"{what}: not a rigid transform (|R^T R - I| = {err:.3g}, det R = {det:.6g}, "
                          f"last row {T[3].tolist()}); poses must be rotations + translations")
@@ -174,6 +184,8 @@ class _ViewWriter:
             raise InputError(f"{self.what}: event at t={t1} ns lies at or after the set's t_end={o.t_end} ns")
         # time index: edges t_start + k*step that are <= the batch's last event
         step = o.index_step_ns
+        if o.t_end is None:
+            o._check_index_size(t1 + 1)
         k_max = (t1 - o.t_start) // step
         if k_max >= self._next_k:
             edges = o.t_start + step * np.arange(self._next_k, k_max + 1, dtype=np.int64)
@@ -185,6 +197,7 @@ class _ViewWriter:
             d[self.n:self.n + m] = np.ascontiguousarray(events[name])
         self.n += m
         self.last_t = t1
+        o.check_written()
 
     def add_frames(self, frames, t_start, t_end, t=None) -> None:
         """Blurred grey frames (N, H, W) float32 with exposure times (int64 ns, common clock)."""
@@ -205,6 +218,7 @@ class _ViewWriter:
                          compression_opts=1, shuffle=True)
         for nm, a in (("t_start", ts), ("t_end", te), ("t", t)):
             g.create_dataset(nm, data=a)
+        o.check_written()
 
     def set_dl_windows(self, edges, windows) -> None:
         """Pre-binned dL windows (imported EvDNeRF sets without raw events)."""
@@ -223,6 +237,7 @@ class _ViewWriter:
         g.create_dataset("windows", data=windows, chunks=(1, o.height, o.width), compression="gzip",
                          compression_opts=1, shuffle=True)
         self.has_events = False
+        o.check_written()
 
     def _count_before(self, t_end: int) -> int:
         """Number of stored events with t < t_end (reads one index bin)."""
@@ -267,12 +282,15 @@ class TrainingSetWriter:
     def __init__(self, path, *, width: int, height: int, c_pos: float, c_neg: float, t_start: int,
                  t_end: int | None = None, eps: float | None = None, downsample: int = 1,
                  compression: str = "scaleoffset", index_step_ns: int = INDEX_STEP_NS,
-                 chunk: int = EVENT_CHUNK):
+                 chunk: int = EVENT_CHUNK, display=None):
+        self.path = Path(path)
+        # `display`: the output's real name (path is usually the atomic helper's temporary one)
+        self.display = Path(display) if display is not None else self.path
         for nm, v in (("width", width), ("height", height)):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 < int(v) <= 65535:
                 raise InputError(f"training set: {nm} must be an integer in [1, 65535], got {v!r}")
-        if not (math.isfinite(c_pos) and math.isfinite(c_neg) and c_pos > 0 and c_neg > 0):
-            raise InputError(f"training set: thresholds must be finite and > 0, got C+={c_pos}, C-={c_neg}")
+        if not (math.isfinite(c_pos) and math.isfinite(c_neg) and 0 < c_pos <= C_MAX and 0 < c_neg <= C_MAX):
+            raise InputError(f"training set: thresholds must be in (0, {C_MAX:g}], got C+={c_pos}, C-={c_neg}")
         _filters(compression)
         self.width, self.height = int(width), int(height)
         self.c_pos, self.c_neg, self.eps = float(c_pos), float(c_neg), eps
@@ -283,9 +301,12 @@ class TrainingSetWriter:
         self.downsample = int(downsample)
         self.compression = compression
         self.index_step_ns = int(index_step_ns)
+        if self.index_step_ns < 1:
+            raise InputError(f"training set: index_step_ns must be >= 1, got {index_step_ns}")
+        if self.t_end is not None:
+            self._check_index_size(self.t_end)
         self.chunk = int(chunk)
-        self.path = Path(path)
-        self.file = _h5py().File(self.path, "w")
+        self.file, self._guard = h5_create(self.path, self.display)
         self._views_group = self.file.create_group("views")
         self.views: dict[str, _ViewWriter] = {}
 
@@ -321,6 +342,7 @@ class TrainingSetWriter:
             pg.create_dataset("T_world_cam", data=pT)
         vw = _ViewWriter(self, name, g)
         self.views[name] = vw
+        self.check_written()
         return vw
 
     def finish(self, *, t_end: int | None = None, provenance: dict | None = None,
@@ -333,6 +355,7 @@ class TrainingSetWriter:
             raise InputError(f"training set: t_end={t_end} must be after t_start={self.t_start}")
         if self.t_end is not None and t_end > self.t_end:
             raise InputError(f"training set: t_end={t_end} is after the declared t_end={self.t_end}")
+        self._check_index_size(t_end)
         if not self.views:
             raise InputError("training set: no views")
         for vw in self.views.values():
@@ -355,17 +378,32 @@ class TrainingSetWriter:
             a[k] = v
         self.file.create_dataset("provenance", data=json.dumps(provenance or {}, indent=1, default=_json_default))
         self.t_end = t_end
+        self.check_written()
 
-    def close(self) -> None:
+    def _check_index_size(self, t_end: int) -> None:
+        """The time index has one entry per step of [t_start, t_end): size it first."""
+        n_bins = -(-(t_end - self.t_start) // self.index_step_ns)
+        check_memory(16 * (n_bins + 1), f"{self.display}: a time index of {n_bins} bins of {self.index_step_ns} ns "
+                     f"over [{self.t_start}, {t_end}) ns",
+                     "the time window is implausibly long; give a shorter window (--start/--end) or fix the "
+                     "times in session.yaml")
+
+    def check_written(self) -> None:
+        """Raise OutputWriteError naming the output once a write has failed (disk full)."""
+        self._guard.check()
+
+    def close(self, *, check: bool = True) -> None:
         if self.file is not None:
-            self.file.close()
-            self.file = None
+            f, self.file = self.file, None
+            h5_close(f, self._guard, check=check)
 
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
-        self.close()
+    def __exit__(self, exc_type, exc, tb):
+        self.close(check=exc_type is None)
+        if exc_type is not None and issubclass(exc_type, Exception):
+            self.check_written()          # a failed write explains whatever went wrong after it
         return False
 
 
@@ -405,7 +443,8 @@ def write_training_set(path, views: list[ViewData], *, width: int, height: int, 
     """Write a whole training set from in-memory views, atomically."""
     with atomic_output(path, overwrite=overwrite) as tmp:
         with TrainingSetWriter(tmp, width=width, height=height, c_pos=c_pos, c_neg=c_neg, t_start=t_start,
-                               t_end=t_end, eps=eps, downsample=downsample, compression=compression) as w:
+                               t_end=t_end, eps=eps, downsample=downsample, compression=compression,
+                               display=path) as w:
             for v in views:
                 vw = w.add_view(v.name, split=v.split, K=v.K, T_world_cam=v.T_world_cam, poses_t=v.poses_t,
                                 poses_T=v.poses_T, attrs=v.attrs)
@@ -447,15 +486,13 @@ class TrainingSet:
 
     def __init__(self, path, *, cache_mb: int = 16):
         self.path = Path(path)
-        h5py = _h5py()
         if not self.path.is_file():
             raise InputError(f"{self.path}: no such training set file")
+        self._f = h5_open(self.path, hint="a training set is what `evdnerf convert` writes",
+                          rdcc_nbytes=int(cache_mb) << 20, rdcc_nslots=10007)
         try:
-            self._f = h5py.File(self.path, "r", rdcc_nbytes=int(cache_mb) << 20, rdcc_nslots=10007)
-        except OSError as exc:
-            raise FormatError(f"not a readable HDF5 file ({exc})", source=str(self.path)) from None
-        try:
-            self._load()
+            with h5_reading(self.path, hint=_FIX):
+                self._load()
         except BaseException:
             self.close()
             raise
@@ -463,45 +500,105 @@ class TrainingSet:
     def _load(self):
         f, where = self._f, str(self.path)
         a = f.attrs
-        if a.get("layout") != LAYOUT:
+        if h5_text(a, "layout", where, required=False) != LAYOUT:
             raise FormatError(f"not a training set (root attribute layout must be {LAYOUT!r}; files written "
                               "by `evdnerf convert` or `evdnerf import-evdnerf` are)", source=where)
-        if int(a.get("layout_version", -1)) != LAYOUT_VERSION:
-            raise FormatError(f"layout_version {a.get('layout_version')!r} is not supported (this toolkit "
+        version = a.get("layout_version", -1)
+        if not isinstance(version, (int, np.integer)) or int(version) != LAYOUT_VERSION:
+            raise FormatError(f"layout_version {version!r} is not supported (this toolkit "
                               f"reads {LAYOUT_VERSION})", source=where)
+        num = lambda key, **kw: h5_number(a, key, where, **kw)  # noqa: E731
+        self.width = num("width", integer=True, low=1, high=65535)
+        self.height = num("height", integer=True, low=1, high=65535)
+        self.c_pos = float(num("c_pos", low=0, low_open=True, high=C_MAX))
+        self.c_neg = float(num("c_neg", low=0, low_open=True, high=C_MAX))
+        self.t_start = num("t_start", integer=True, low=-T_LIMIT, high=T_LIMIT)
+        self.t_end = num("t_end", integer=True, low=-T_LIMIT, high=T_LIMIT)
+        if self.t_end <= self.t_start:
+            raise FormatError(f"t_end={self.t_end} is not after t_start={self.t_start}; {_FIX}", source=where)
+        self.index_step_ns = num("index_step_ns", integer=True, low=1, high=T_LIMIT)
+        eps = num("eps", required=False, low=0, low_open=True)
+        self.eps = None if eps is None else float(eps)
+        self.downsample = num("downsample", required=False, default=1, integer=True, low=1, high=64)
+        self.scene_bounds = None
+        if "scene_bounds" in a:
+            b = np.asarray(a["scene_bounds"])
+            if b.shape != (2, 3) or b.dtype.kind not in "iuf" or not np.all(np.isfinite(b)) or np.any(b[1] < b[0]):
+                raise FormatError(f"attribute scene_bounds must be [[xmin, ymin, zmin], [xmax, ymax, zmax]]; {_FIX}",
+                                  source=where)
+            self.scene_bounds = b.astype(np.float64)
         try:
-            self.width, self.height = int(a["width"]), int(a["height"])
-            self.c_pos, self.c_neg = float(a["c_pos"]), float(a["c_neg"])
-            self.t_start, self.t_end = int(a["t_start"]), int(a["t_end"])
-            self.index_step_ns = int(a["index_step_ns"])
-            names = json.loads(a["view_names"])
-        except (KeyError, ValueError) as exc:
-            raise FormatError(f"missing or bad root attribute ({exc})", source=where) from None
-        self.eps = float(a["eps"]) if "eps" in a else None
-        self.downsample = int(a.get("downsample", 1))
-        self.scene_bounds = np.asarray(a["scene_bounds"], np.float64) if "scene_bounds" in a else None
+            names = json.loads(h5_text(a, "view_names", where))
+        except ValueError:
+            names = None
+        if (not isinstance(names, list) or not names or not all(isinstance(n, str) and n and "/" not in n
+                                                                for n in names) or len(set(names)) != len(names)):
+            raise FormatError(f"attribute view_names must be a JSON list of unique view names; {_FIX}", source=where)
+        h5_memory(self.width * self.height * 8, where, f"one {self.width}x{self.height} image")
+        self.n_bins = -(-(self.t_end - self.t_start) // self.index_step_ns)
+        h5_memory(len(names) * (self.n_bins + 1) * 8, where,
+                  f"the time index ({len(names)} views x {self.n_bins + 1} bins of {self.index_step_ns} ns)")
         self._infos: dict[str, ViewInfo] = {}
         self._index: dict[str, np.ndarray] = {}
         for i, name in enumerate(names):
-            if f"views/{name}" not in f:
-                raise FormatError(f"view {name!r} is listed in view_names but has no group views/{name}",
-                                  source=where)
-            g = f["views"][name]
-            info = ViewInfo(name=name, index=i, split=str(g.attrs["split"]), K=g["K"][()],
-                            T_world_cam=g["T_world_cam"][()], num_events=int(g.attrs["num_events"]),
-                            has_events=bool(g.attrs.get("has_events", True)),
-                            offset_ns=int(g.attrs["offset_ns"]) if "offset_ns" in g.attrs else None,
-                            moving="poses" in g)
-            if info.has_events:
-                if "events" not in g or "index" not in g["events"]:
-                    raise FormatError(f"view {name}: no events/ group with an index", source=where)
-                idx = g["events/index"][()]
-                if idx.size < 2 or idx[-1] != info.num_events or g["events/t"].shape[0] != info.num_events:
-                    raise FormatError(f"view {name}: the time index does not match the {info.num_events} "
-                                      "events; the file is damaged", source=where)
-                self._index[name] = idx
-            self._infos[name] = info
+            self._infos[name] = self._load_view(i, name)
         self.views: list[str] = list(names)
+
+    def _load_view(self, i: int, name: str) -> ViewInfo:
+        """One view's metadata, checked; its time index is read (small), its events are not."""
+        import h5py
+
+        f, where = self._f, str(self.path)
+        g = f["views"].get(name) if isinstance(f.get("views"), h5py.Group) else None
+        if not isinstance(g, h5py.Group):
+            raise FormatError(f"view {name!r} is listed in view_names but has no group views/{name}", source=where)
+        what = f"{where}: view {name}"
+        split = h5_text(g.attrs, "split", where)
+        if split not in SPLITS:
+            raise FormatError(f"view {name}: split {split!r} is not one of {SPLITS}; {_FIX}", source=where)
+        K = check_K(h5_dataset(g, "K", where, shape=(3, 3), kinds="iuf", what=f"view {name}: K")[()], what)
+        T = check_pose(h5_dataset(g, "T_world_cam", where, shape=(4, 4), kinds="iuf",
+                                  what=f"view {name}: T_world_cam")[()], f"{what}: T_world_cam")
+        num_events = h5_number(g.attrs, "num_events", f"{where}: view {name}", integer=True, low=0, high=T_LIMIT)
+        has_events = g.attrs.get("has_events", True)
+        if not isinstance(has_events, (bool, np.bool_)):
+            raise FormatError(f"view {name}: attribute has_events must be a boolean; {_FIX}", source=where)
+        offset = h5_number(g.attrs, "offset_ns", f"{where}: view {name}", required=False, integer=True,
+                           low=-2**63, high=2**63 - 1)
+        info = ViewInfo(name=name, index=i, split=split, K=K, T_world_cam=T, num_events=num_events,
+                        has_events=bool(has_events), offset_ns=offset, moving="poses" in g)
+        H, W = self.height, self.width
+        if info.moving:
+            pt = h5_dataset(g, "poses/t", where, ndim=1, what=f"view {name}: poses/t")
+            if pt.shape[0] < 1:
+                raise FormatError(f"view {name}: poses/t is empty; {_FIX}", source=where)
+            h5_dataset(g, "poses/T_world_cam", where, shape=(pt.shape[0], 4, 4), kinds="iuf",
+                       what=f"view {name}: poses/T_world_cam")
+        if "frames" in g:
+            fr = h5_dataset(g, "frames/frames", where, ndim=3, kinds="f", what=f"view {name}: frames/frames")
+            if fr.shape[1:] != (H, W):
+                raise FormatError(f"view {name}: frames/frames has shape {fr.shape}, expected (N, {H}, {W}); {_FIX}",
+                                  source=where)
+            for k in ("t_start", "t_end", "t"):
+                h5_dataset(g, f"frames/{k}", where, shape=(fr.shape[0],), what=f"view {name}: frames/{k}")
+        if info.has_events:
+            if not isinstance(g.get("events"), h5py.Group) or "index" not in g["events"]:
+                raise FormatError(f"view {name}: no events/ group with an index", source=where)
+            for k in ("t", "x", "y", "p"):
+                h5_dataset(g, f"events/{k}", where, shape=(num_events,), what=f"view {name}: events/{k}")
+            idx = h5_dataset(g, "events/index", where, shape=(self.n_bins + 1,),
+                             what=f"view {name}: events/index")[()].astype(np.int64)
+            if idx[0] != 0 or idx[-1] != num_events or np.any(idx[1:] < idx[:-1]):
+                raise FormatError(f"view {name}: the time index does not match the {num_events} "
+                                  "events; the file is damaged", source=where)
+            self._index[name] = idx
+        else:
+            edges = h5_dataset(g, "dl/edges", where, ndim=1, what=f"view {name}: dl/edges")
+            if edges.shape[0] < 2:
+                raise FormatError(f"view {name}: dl/edges needs at least 2 times; {_FIX}", source=where)
+            h5_dataset(g, "dl/windows", where, shape=(edges.shape[0] - 1, H, W), kinds="f",
+                       what=f"view {name}: dl/windows")
+        return info
 
     # ----- lifecycle
     def close(self) -> None:
@@ -576,10 +673,18 @@ class TrainingSet:
 
     def poses(self, view) -> tuple[np.ndarray, np.ndarray] | None:
         """A moving camera's trajectory (t (M,) int64, T_world_cam (M, 4, 4)), or None when static."""
-        g = self._file()["views"][self._name(view)]
-        if "poses" not in g:
+        name = self._name(view)
+        if not self._infos[name].moving:
             return None
-        return g["poses/t"][()], g["poses/T_world_cam"][()]
+        with h5_reading(self.path, f"view {name}: poses", _FIX):
+            g = self._file()["views"][name]
+            M = g["poses/t"].shape[0]
+            h5_memory(M * 136, self.path, f"view {name}: {M} poses")
+            t, T = g["poses/t"][()].astype(np.int64), g["poses/T_world_cam"][()].astype(np.float64)
+        if np.any(t[1:] < t[:-1]):
+            raise FormatError(f"view {name}: poses/t is not sorted; {_FIX}", source=str(self.path))
+        check_poses(T, f"{self.path}: view {name}: poses/T_world_cam")
+        return t, T
 
     def num_events(self, view) -> int:
         return self.info(view).num_events
@@ -587,24 +692,46 @@ class TrainingSet:
     @property
     def provenance(self) -> dict:
         f = self._file()
-        if "provenance" not in f:
-            return {}
-        raw = f["provenance"][()]
-        return json.loads(raw.decode() if isinstance(raw, bytes) else raw)
+        with h5_reading(self.path, "provenance", _FIX):
+            if "provenance" not in f:
+                return {}
+            ds = h5_dataset(f, "provenance", self.path, ndim=0, kinds="OSU", what="provenance")
+            raw = ds[()]
+            out = json.loads(raw.decode("utf-8") if isinstance(raw, bytes) else raw)
+        if not isinstance(out, dict):
+            raise FormatError(f"provenance is not a JSON object; {_FIX}", source=str(self.path))
+        return out
 
     def frames(self, view) -> dict | None:
         """Blurred frames {frames, t_start, t_end, t} in the common clock, or None."""
-        g = self._file()["views"][self._name(view)]
-        if "frames" not in g:
-            return None
-        return {k: g["frames"][k][()] for k in ("frames", "t_start", "t_end", "t")}
+        name = self._name(view)
+        with h5_reading(self.path, f"view {name}: frames", _FIX):
+            g = self._file()["views"][name]
+            if "frames" not in g:
+                return None
+            n = g["frames/frames"].shape[0]
+            h5_memory(n * (self.width * self.height * 4 + 24), self.path, f"view {name}: {n} frames")
+            out = {k: g["frames"][k][()] for k in ("frames", "t_start", "t_end", "t")}
+        if not np.all(np.isfinite(out["frames"])):
+            raise FormatError(f"view {name}: frames contain NaN or inf; {_FIX}", source=str(self.path))
+        for k in ("t_start", "t_end", "t"):
+            out[k] = out[k].astype(np.int64)
+        return out
 
     def dl_windows(self, view) -> tuple[np.ndarray, np.ndarray] | None:
         """Pre-binned (edges, windows) of an imported frame-only view, or None."""
-        g = self._file()["views"][self._name(view)]
-        if "dl" not in g:
+        name = self._name(view)
+        if self._infos[name].has_events:
             return None
-        return g["dl/edges"][()], g["dl/windows"][()]
+        with h5_reading(self.path, f"view {name}: dl windows", _FIX):
+            g = self._file()["views"][name]
+            n = g["dl/windows"].shape[0]
+            h5_memory(n * (self.width * self.height * 4 + 8), self.path, f"view {name}: {n} dL windows")
+            edges, windows = g["dl/edges"][()].astype(np.int64), g["dl/windows"][()]
+        if np.any(edges[1:] <= edges[:-1]) or not np.all(np.isfinite(windows)):
+            raise FormatError(f"view {name}: dl edges are not increasing or dl windows hold NaN/inf; {_FIX}",
+                              source=str(self.path))
+        return edges, windows
 
     # ----- events
     def _require_events(self, name: str) -> None:
@@ -626,7 +753,8 @@ class TrainingSet:
         lo, hi = int(idx[k]), int(idx[k + 1])
         if lo == hi or (t - self.t_start) % self.index_step_ns == 0:
             return lo
-        ts = self._file()["views"][name]["events/t"][lo:hi]
+        with h5_reading(self.path, f"view {name}: events {lo}..{hi}", _FIX):
+            ts = self._file()["views"][name]["events/t"][lo:hi]
         return lo + int(np.searchsorted(ts, t, "left"))
 
     def index_range(self, view, t0: int | None = None, t1: int | None = None) -> tuple[int, int]:
@@ -639,12 +767,32 @@ class TrainingSet:
         return i0, max(i0, self._bound(name, t1))
 
     def _read(self, name: str, i0: int, i1: int) -> np.ndarray:
+        h5_memory(2 * (i1 - i0) * EVENT_DTYPE.itemsize, self.path, f"view {name}: {i1 - i0} events")
         out = np.empty(i1 - i0, EVENT_DTYPE)
         if i1 > i0:
-            g = self._file()["views"][name]["events"]
-            for k in ("t", "x", "y", "p"):
-                out[k] = g[k][i0:i1]
+            with h5_reading(self.path, f"view {name}: events {i0}..{i1}", _FIX):
+                g = self._file()["views"][name]["events"]
+                for k in ("t", "x", "y", "p"):
+                    out[k] = g[k][i0:i1]
+            self._check_block(name, out, i0)
         return out
+
+    def _check_block(self, name: str, ev: np.ndarray, i0: int) -> None:
+        """Events as stored must be inside the geometry and the time range, sorted, +-1:
+        scaleoffset has no checksum, so a damaged chunk shows up only here."""
+        t, p = ev["t"], ev["p"]
+        bad = []
+        if int(ev["x"].max()) >= self.width or int(ev["y"].max()) >= self.height:
+            bad.append(f"pixels outside {self.width}x{self.height}")
+        if np.any((p != 1) & (p != -1)):
+            bad.append("polarities other than +1/-1")
+        if int(t[0]) < self.t_start or int(t[-1]) >= self.t_end:
+            bad.append(f"times outside [{self.t_start}, {self.t_end}) ns")
+        if np.any(t[1:] < t[:-1]):
+            bad.append("times out of order")
+        if bad:
+            raise FormatError(f"view {name}: events {i0}..{i0 + ev.size} hold {' and '.join(bad)}; {_FIX}",
+                              source=str(self.path))
 
     def events(self, view, t0: int | None = None, t1: int | None = None) -> np.ndarray:
         """Events of the view with t0 <= t < t1 (EVENT_DTYPE; None: the whole range)."""
@@ -690,6 +838,8 @@ class TrainingSet:
                              "it has no per-polarity counts (learned thresholds need events)")
         W, H = self.width, self.height
         K, P = edges.size - 1, W * H
+        h5_memory(K * P * 2 * (8 if K * P < (1 << 22) else 4), self.path,
+                  f"view {name}: polarity counts of {K} windows of {W}x{H}")
         counts = np.zeros((K, H, W, 2), np.int64 if K * P < (1 << 22) else np.int32)
         flat_counts = counts.reshape(-1)
         for ev in self.iter_events(name, int(edges[0]), int(edges[-1])):
@@ -729,6 +879,25 @@ class TrainingSet:
     def __repr__(self) -> str:
         return (f"TrainingSet({str(self.path)!r}: {len(self.views)} views, {self.width}x{self.height}, "
                 f"[{self.t_start}, {self.t_end}) ns)")
+
+
+def check_poses(T: np.ndarray, what: str, *, tol: float = 1e-6) -> np.ndarray:
+    """check_pose for a stack (M, 4, 4), vectorised; names the first bad pose."""
+    T = np.asarray(T, np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise InputError(f"{what}: expected (M, 4, 4) matrices, got shape {T.shape}")
+    finite = np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)
+    R = np.where(finite[:, None, None], T[:, :3, :3], np.eye(3))
+    with np.errstate(all="ignore"):
+        err = np.abs(np.einsum("mji,mjk->mik", R, R) - np.eye(3)).max(axis=(1, 2))
+        det = np.linalg.det(R)
+    last = np.all(T[:, 3] == [0.0, 0.0, 0.0, 1.0], axis=1)
+    bad = np.flatnonzero(~finite | (err > tol) | (np.abs(det - 1) > tol) | ~last)
+    if bad.size:
+        i = int(bad[0])
+        check_pose(T[i], f"{what}[{i}]")
+        raise InputError(f"{what}[{i}]: not a finite rigid transform")
+    return T
 
 
 def _check_edges(edges) -> np.ndarray:

@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import tempfile
 import time
 from collections.abc import Mapping
@@ -68,8 +69,10 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..atomic import atomic_output
+from ..atomic import PARTIAL_SUFFIX, atomic_output
 from ..errors import EvdnerfError, FormatError, InputError, OutputExistsError
+from ..io.guard import OutputWriteError, check_free_space
+from ..limits import check_memory
 from ..io.trainingset import COMPRESSIONS, TrainingSetWriter, check_pose
 from .layout import Session, ViewRecord, load_session, session_yaml_path
 
@@ -224,6 +227,11 @@ class _RateHistogram:
         if t.size == 0:
             return
         b0, b1 = int(t[0]) // self.bin_ns, int(t[-1]) // self.bin_ns
+        lo = b0 if self.first is None else min(b0, self.first)
+        check_memory(16 * (max(b1 - lo + 1, self.counts.size) + 1), f"convert: an event-rate curve of "
+                     f"{b1 - lo + 1} bins of {self.bin_ns} ns (events from {lo * self.bin_ns} to {t[-1]} ns)",
+                     "the events span an implausible time: a damaged bag or wrong sync offsets; give the "
+                     "window explicitly (--start/--end)")
         if self.first is None:
             self.first = b0
         if b0 < self.first:
@@ -243,6 +251,10 @@ def detect_motion_end(counts: np.ndarray, first_bin: int, bin_ns: int, start_ns:
     """End of the motion (see the module doc, "rate-floor"): (end_ns, diagnostics)."""
     # counts over every bin that overlaps the coverage (bins without events count 0)
     b0, b1 = int(coverage[0]) // bin_ns, int(coverage[1]) // bin_ns
+    check_memory(40 * max(0, b1 - b0 + 1), f"convert: an event-rate curve of {b1 - b0 + 1} bins over the views' "
+                 f"common recording [{coverage[0]}, {coverage[1]}] ns",
+                 "the recordings span an implausible time: a damaged bag or wrong sync offsets; give the window "
+                 "explicitly (--start/--end)")
     full = np.zeros(max(0, b1 - b0 + 1), np.int64)
     lo, hi = max(b0, first_bin), min(b1, first_bin + counts.size - 1)
     if hi >= lo:
@@ -295,8 +307,12 @@ def _view_context(name: str, bag) -> str:
 
 
 def _reraise(exc: EvdnerfError, name: str, bag):
+    if isinstance(exc, (OutputExistsError, OutputWriteError)):
+        return exc                        # about the output, not the view
     msg = f"{_view_context(name, bag)}: {exc}"
-    if isinstance(exc, FormatError):
+    if isinstance(exc, FormatError) and exc.source is not None and not str(exc.source).startswith(str(bag)):
+        err = FormatError(msg)            # another file of the view (its frames), not its bag
+    elif isinstance(exc, FormatError):
         hint = "" if "truncated" in str(exc) else "; the bag is damaged or truncated"
         err = FormatError(msg + hint + " (re-record the view, salvage it with `mcap recover`, or remove "
                           "it from session.yaml)")
@@ -391,30 +407,48 @@ def _check_span(plan: _ViewPlan, start: int, end: int | None) -> None:
 
 
 def _load_frames(v: ViewRecord, offset: int, factor: int, width: int, height: int) -> dict | None:
+    from ..io.npz import load_npz
+
     if v.frames is None:
         return None
     if not Path(v.frames).is_file():
         raise InputError(f"frames file {v.frames} (session.yaml views[].frames) does not exist")
-    try:
-        with np.load(v.frames) as z:
-            data = {k: z[k] for k in ("frames", "t_start", "t_end") if k in z}
-            if "t" in z:
-                data["t"] = z["t"]
-    except (OSError, ValueError, EOFError) as exc:
-        raise InputError(f"frames file {v.frames} is unreadable ({exc})") from None
-    if "frames" not in data or "t_start" not in data or "t_end" not in data:
-        raise InputError(f"frames file {v.frames} needs arrays frames, t_start, t_end")
-    frames = np.asarray(data["frames"], np.float32)
-    if frames.ndim != 3 or frames.shape[1:] != (height, width):
-        raise InputError(f"frames file {v.frames}: frames have shape {frames.shape}, expected (N, {height}, {width})")
+    data = load_npz(v.frames, ("frames", "t_start", "t_end"), optional=("t",),
+                    what="a frames file (frames (N, H, W) float, t_start, t_end int64 ns)")
+    frames = data["frames"]
+    if frames.ndim != 3 or frames.shape[1:] != (height, width) or frames.dtype.kind not in "fiu":
+        raise InputError(f"frames file {v.frames}: frames have shape {frames.shape} and dtype {frames.dtype}, "
+                         f"expected (N, {height}, {width}) numbers")
+    frames = frames.astype(np.float32, copy=False)
+    if not np.all(np.isfinite(frames)):
+        raise InputError(f"frames file {v.frames}: frames contain NaN or inf")
     out = {"frames": downsample_frames(frames, factor)}
     for k in ("t_start", "t_end", "t"):
         if k in data:
-            a = np.asarray(data[k])
-            if a.dtype.kind not in "iu":
-                raise InputError(f"frames file {v.frames}: {k} must be int64 ns")
+            a = data[k]
+            if a.dtype.kind not in "iu" or a.shape != (frames.shape[0],):
+                raise InputError(f"frames file {v.frames}: {k} must be {frames.shape[0]} int64 ns times, got "
+                                 f"shape {a.shape} and dtype {a.dtype}")
+            if a.size and (int(a.max()) > 2**62 or int(a.min()) < -2**62):
+                raise InputError(f"frames file {v.frames}: {k} holds times beyond +-2**62 ns")
             out[k] = a.astype(np.int64) - offset
     return out
+
+
+def _input_bytes(plans) -> int:
+    """Bytes of the views' bags and frames files (for the free-space check)."""
+    total = 0
+    for plan in plans:
+        v = plan.record
+        for p in (v.bag, v.frames):
+            if p is None:
+                continue
+            p = Path(p)
+            try:
+                total += sum(f.stat().st_size for f in p.iterdir() if f.is_file()) if p.is_dir() else p.stat().st_size
+            except OSError:
+                pass
+    return total
 
 
 # =========================================================================== convert
@@ -463,9 +497,13 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
     rate = _RateHistogram(options.rate_bin_ns) if end is None else None
     coverage = [None, None]
     total_in, total_out = 0, 0
+    # a training set takes at least about a quarter of its bags' bytes (more with frames): refuse
+    # now a disk that clearly cannot hold it, not after minutes of decoding
+    check_free_space(out, _input_bytes(plans) / 4, f"a training set from {len(plans)} views")
     with atomic_output(out, overwrite=overwrite) as tmp:
         with TrainingSetWriter(tmp, width=W, height=H, c_pos=session.c_pos, c_neg=session.c_neg, t_start=start,
-                               t_end=end, eps=session.eps, downsample=s, compression=options.compression) as w:
+                               t_end=end, eps=session.eps, downsample=s, compression=options.compression,
+                               display=out) as w:
             for plan, K in zip(plans, Ks):
                 v = plan.record
                 t_view = time.perf_counter()
@@ -562,13 +600,13 @@ def _stream_view(v: ViewRecord, offset: int, topic: str, start: int, end: int | 
         if stats["first_t"] is None:
             stats["first_t"] = int(t[0])
         stats["last_t"] = int(t[-1])
-        if rate is not None:
-            rate.add(t)
         back = np.flatnonzero(t[1:] < t[:-1])
         if back.size:
             j = int(back[0]) + 1
             raise FormatError(f"events go back in time at t={int(t[j]) + offset} ns (view clock) after "
                               f"{int(t[j - 1]) + offset} ns; the event stream must be sorted")
+        if rate is not None:                    # after the order check: bins assume sorted times
+            rate.add(t)
         i0 = int(np.searchsorted(t, start, "left"))
         i1 = ev.size if end is None else int(np.searchsorted(t, end, "left"))
         if end is not None and i1 < ev.size:
@@ -678,7 +716,9 @@ def run_convert(session_dir, out, *, fmt: str = "h5", window=None, downsample: i
     parent = out.parent if str(out.parent) else Path(".")
     if not parent.is_dir():
         raise InputError(f"{out}: parent folder {parent} does not exist; create it first")
-    with tempfile.TemporaryDirectory(prefix=f".{out.name}.", suffix=".convert", dir=parent) as td:
+    # named like the atomic helper's temporaries, so that a killed run's leftover is found and
+    # removed by the next run writing `out`
+    with tempfile.TemporaryDirectory(prefix=f".{out.name}.{os.getpid()}.", suffix=PARTIAL_SUFFIX, dir=parent) as td:
         h5 = Path(td) / "train.h5"
         summary = convert_session(session_dir, h5, options, log=log)
         summary["export"] = export_evdnerf(h5, out, n_windows=n_windows, event_time=event_time,

@@ -23,6 +23,8 @@ import yaml
 
 from ..atomic import atomic_output
 from ..errors import InputError
+from ..io.guard import check_value, read_text
+from ..io.trainingset import C_MAX, T_LIMIT
 
 SESSION_FORMAT = "evdnerf-rig-session"
 SESSION_FORMAT_VERSION = 1
@@ -90,86 +92,218 @@ def write_session_yaml(root, data: dict, *, overwrite: bool = False) -> Path:
 
 
 def load_session(root) -> Session:
-    """Read and validate a session folder; every error names the file and the view."""
+    """Read and validate a session folder; every error names the file and the key at fault
+    (``session.yaml: views[3].T_world_cam``) and says what is expected."""
     root = Path(root)
     path = session_yaml_path(root)
+    if not root.is_dir():
+        raise InputError(f"{root}: no such session folder")
     if not path.is_file():
         raise InputError(f"{root}: no session.yaml; a session folder is what `evdnerf simulate` "
                          "or the capture node writes")
+    data = _parse_yaml(path)
+    return _check_session(root, path, data)
+
+
+def _parse_yaml(path: Path):
+    text = read_text(path, what="session.yaml")
     try:
-        data = yaml.safe_load(path.read_text())
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise InputError(f"{path}: not valid YAML ({exc})") from None
-    if not isinstance(data, dict) or data.get("format") != SESSION_FORMAT:
-        raise InputError(f"{path}: not a session file (format must be {SESSION_FORMAT!r})")
-    if data.get("format_version") != SESSION_FORMAT_VERSION:
-        raise InputError(f"{path}: format_version {data.get('format_version')!r} is not supported "
-                         f"(this toolkit reads version {SESSION_FORMAT_VERSION})")
-    cam = _section(data, "camera", path)
-    width, height = _int(cam, "width", path, "camera"), _int(cam, "height", path, "camera")
-    K = _matrix(cam.get("K"), (3, 3), path, "camera.K")
-    D = np.asarray(cam.get("D", [0.0] * 5), np.float64)
-    th = _section(data, "thresholds", path)
-    c_pos, c_neg = float(th.get("c_pos", np.nan)), float(th.get("c_neg", np.nan))
-    if not (np.isfinite(c_pos) and np.isfinite(c_neg) and c_pos > 0 and c_neg > 0):
-        raise InputError(f"{path}: thresholds.c_pos / c_neg must be finite and > 0")
-    raw_views = data.get("views")
-    if not isinstance(raw_views, list) or not raw_views:
-        raise InputError(f"{path}: `views` must be a non-empty list")
-    views, seen = [], set()
-    for i, v in enumerate(raw_views):
-        where = f"views[{i}]"
-        if not isinstance(v, dict) or not isinstance(v.get("name"), str) or not v["name"]:
-            raise InputError(f"{path}: {where} needs a `name`")
-        name = v["name"]
-        if name in seen:
-            raise InputError(f"{path}: duplicate view name {name!r}; view names must be unique")
-        seen.add(name)
-        split = v.get("split", "train")
-        if split not in SPLITS:
-            raise InputError(f"{path}: view {name}: split {split!r} is not one of {SPLITS}")
-        bag = root / str(v.get("bag", name))
-        T = _matrix(v.get("T_world_cam"), (4, 4), path, f"view {name}: T_world_cam")
-        _check_rigid(T, path, name)
-        frames = v.get("frames")
-        views.append(ViewRecord(name=name, bag=bag, split=split,
-                                azimuth_deg=None if v.get("azimuth_deg") is None else float(v["azimuth_deg"]),
-                                T_world_cam=T, frames=None if frames is None else root / frames,
-                                ground_truth=v.get("ground_truth"), sync=v.get("sync")))
-    return Session(root=root, width=width, height=height, K=K, D=D, c_pos=c_pos, c_neg=c_neg,
-                   eps=None if th.get("eps") is None else float(th["eps"]), views=views,
-                   servo=data.get("servo"), time=data.get("time") or {}, data=data)
+        raise InputError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
+    except RecursionError:
+        raise InputError(f"{path}: nested too deeply to be a session file") from None
+    except (ValueError, OverflowError) as exc:     # e.g. a timestamp PyYAML cannot represent
+        raise InputError(f"{path}: not a usable YAML document ({exc})") from None
 
 
-def _section(data, key, path) -> dict:
-    sec = data.get(key)
-    if not isinstance(sec, dict):
-        raise InputError(f"{path}: missing section `{key}`")
-    return sec
+# =========================================================================== schema
+#
+# One check of everything the toolkit reads from session.yaml: types, ranges (check_value),
+# required keys. Other keys are kept as they are (they are the session's own record).
+
+# Contrast thresholds outside (0, C_MAX] and times beyond +-T_LIMIT ns are refused, as in a
+# training set. Sensor size limit (pixel coordinates are uint16 everywhere).
+SIZE_MAX = 65535
 
 
-def _int(sec, key, path, where) -> int:
-    v = sec.get(key)
-    if not isinstance(v, int) or isinstance(v, bool) or v <= 0:
-        raise InputError(f"{path}: {where}.{key} must be a positive integer, got {v!r}")
-    return v
+class _Where:
+    """Names a key the way a user finds it: `<path>: views[3].T_world_cam`."""
+
+    def __init__(self, path: Path, key: str = ""):
+        self.path, self.key = path, key
+
+    def __truediv__(self, sub) -> "_Where":
+        if isinstance(sub, int):
+            return _Where(self.path, f"{self.key}[{sub}]")
+        return _Where(self.path, f"{self.key}.{sub}" if self.key else str(sub))
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.key}" if self.key else str(self.path)
+
+    def error(self, msg: str) -> InputError:
+        return InputError(f"{self}: {msg}")
 
 
-def _matrix(value, shape, path, where) -> np.ndarray:
-    try:
-        m = np.asarray(value, np.float64)
-    except (TypeError, ValueError):
-        m = None
-    if m is None or m.shape != shape:
-        raise InputError(f"{path}: {where} must be a {shape[0]}x{shape[1]} matrix")
+def _mapping(value, where: _Where, *, required: bool = True) -> dict | None:
+    if value is None and not required:
+        return None
+    if not isinstance(value, dict):
+        what = "missing" if value is None else f"a {_type_name(value)}"
+        raise where.error(f"must be a mapping (key: value lines), but it is {what}")
+    return value
+
+
+def _type_name(value) -> str:
+    return {dict: "mapping", list: "list", str: "string", bool: "boolean", int: "number",
+            float: "number"}.get(type(value), type(value).__name__)
+
+
+def _number(sec: dict, key: str, where: _Where, *, required: bool = True, **limits):
+    value = sec.get(key)
+    if value is None:
+        if required:
+            raise (where / key).error("is missing; it is required")
+        return None
+    if isinstance(value, str):
+        try:
+            float(value)
+        except ValueError:
+            pass
+        else:   # YAML 1.1 reads 1e-3 (no dot) as text
+            raise (where / key).error(f"expected a number, got the text {value!r} (YAML reads exponents "
+                                      "without a dot as text: write 0.001 or 1.0e-3)")
+    return check_value(value, str(where / key), **limits)
+
+
+def _text(sec: dict, key: str, where: _Where, *, required: bool = False, default=None) -> str | None:
+    value = sec.get(key)
+    value = default if value is None else value
+    if value is None:
+        if required:
+            raise (where / key).error("is missing; it is required")
+        return None
+    if not isinstance(value, str) or not value:
+        raise (where / key).error(f"must be a non-empty string, got {value!r}")
+    return value
+
+
+def _matrix(value, shape, where: _Where) -> np.ndarray:
+    ok = isinstance(value, list) and len(value) == shape[0] and all(
+        isinstance(row, list) and len(row) == shape[1] for row in value)
+    if not ok:
+        raise where.error(f"must be a {shape[0]}x{shape[1]} matrix (a list of {shape[0]} rows of "
+                          f"{shape[1]} numbers)")
+    for i, row in enumerate(value):
+        for j, v in enumerate(row):
+            if not _is_number(v):
+                raise where.error(f"entry [{i}][{j}] must be a number of plausible size, got {str(v)[:40]}")
+    m = np.asarray(value, np.float64)
     if not np.all(np.isfinite(m)):
-        raise InputError(f"{path}: {where} contains NaN or inf")
+        raise where.error("contains NaN or inf (or a number too large for a float)")
+    if m.size and np.abs(m).max() > 1e12:
+        raise where.error(f"holds entries of magnitude {np.abs(m).max():.3g}; not a plausible calibration")
     return m
 
 
-def _check_rigid(T, path, name) -> None:
+def _is_number(v) -> bool:
+    """A YAML number a float can hold (YAML integers may have any number of digits)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and not (isinstance(v, int) and abs(v) > 10**300)
+
+
+def _int_ns(sec: dict, key: str, where: _Where, *, required: bool = False):
+    return _number(sec, key, where, required=required, integer=True, low=-T_LIMIT, high=T_LIMIT)
+
+
+def _check_session(root: Path, path: Path, data) -> Session:
+    top = _Where(path)
+    if not isinstance(data, dict) or data.get("format") != SESSION_FORMAT:
+        raise InputError(f"{path}: not a session file (format must be {SESSION_FORMAT!r})")
+    if data.get("format_version") != SESSION_FORMAT_VERSION or isinstance(data.get("format_version"), bool):
+        raise InputError(f"{path}: format_version {data.get('format_version')!r} is not supported "
+                         f"(this toolkit reads version {SESSION_FORMAT_VERSION})")
+    w = top / "camera"
+    cam = _mapping(data.get("camera"), w)
+    width = _number(cam, "width", w, integer=True, low=1, high=SIZE_MAX)
+    height = _number(cam, "height", w, integer=True, low=1, high=SIZE_MAX)
+    K = _matrix(cam.get("K"), (3, 3), w / "K")
+    if not (K[0, 0] > 0 and K[1, 1] > 0) or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
+        raise (w / "K").error(f"is not a pinhole intrinsic matrix (need fx, fy > 0 and last row [0, 0, 1]); "
+                              f"got {K.tolist()}")
+    D = cam.get("D", [0.0] * 5)
+    if not isinstance(D, list) or len(D) > 14 or not all(_is_number(v) for v in D) \
+            or not np.all(np.isfinite(np.asarray(D, np.float64))):
+        raise (w / "D").error("must be a list of at most 14 finite numbers (distortion coefficients)")
+    D = np.asarray(D, np.float64)
+    if cam.get("topics") is not None:
+        tw = w / "topics"
+        topics = _mapping(cam["topics"], tw)
+        for k in topics:
+            _topic(topics, k, tw)
+    w = top / "thresholds"
+    th = _mapping(data.get("thresholds"), w)
+    c_pos = float(_number(th, "c_pos", w, low=0, low_open=True, high=C_MAX))
+    c_neg = float(_number(th, "c_neg", w, low=0, low_open=True, high=C_MAX))
+    eps = _number(th, "eps", w, required=False, low=0, low_open=True, high=1.0)
+    time_sec = _mapping(data.get("time"), top / "time", required=False) or {}
+    for k in ("scene_start_ns", "scene_end_ns", "motion_start_ns", "motion_end_ns"):
+        _int_ns(time_sec, k, top / "time")
+    ms, me = time_sec.get("motion_start_ns"), time_sec.get("motion_end_ns")
+    if ms is not None and me is not None and me <= ms:
+        raise (top / "time" / "motion_end_ns").error(f"{me} must be after motion_start_ns {ms}")
+    servo = _mapping(data.get("servo"), top / "servo", required=False)
+    if servo is not None:
+        for k in ("trigger", "joint_states"):
+            _topic(servo, k, top / "servo")
+        _int_ns(servo, "start_ns_scene", top / "servo")
+    if data.get("scene_bounds") is not None:
+        b = _matrix(data["scene_bounds"], (2, 3), top / "scene_bounds")
+        if np.any(b[1] < b[0]):
+            raise (top / "scene_bounds").error("must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with max >= min")
+    raw_views = data.get("views")
+    if not isinstance(raw_views, list) or not raw_views:
+        raise (top / "views").error("must be a non-empty list of view records")
+    views, seen = [], set()
+    for i, v in enumerate(raw_views):
+        views.append(_check_view(root, v, top / "views" / i, seen))
+    return Session(root=root, width=width, height=height, K=K, D=D, c_pos=c_pos, c_neg=c_neg,
+                   eps=None if eps is None else float(eps), views=views, servo=servo, time=time_sec, data=data)
+
+
+def _topic(sec: dict, key: str, where: _Where) -> None:
+    value = sec.get(key)
+    if value is not None and (not isinstance(value, str) or not value.startswith("/")):
+        raise (where / key).error(f"must be an absolute topic name such as '/event_camera/events', got {value!r}")
+
+
+def _check_view(root: Path, v, where: _Where, seen: set) -> ViewRecord:
+    if not isinstance(v, dict):
+        raise where.error(f"must be a mapping with name, bag, split, T_world_cam; got a {_type_name(v)}")
+    name = v.get("name")
+    if not isinstance(name, str) or not name or "/" in name or name in (".", ".."):
+        raise (where / "name").error(f"needs a `name`: a non-empty string without '/', got {name!r}")
+    if name in seen:
+        raise (where / "name").error(f"duplicate view name {name!r}; view names must be unique")
+    seen.add(name)
+    split = v.get("split", "train")
+    if split not in SPLITS:
+        raise (where / "split").error(f"view {name}: split {split!r} is not one of {SPLITS}")
+    bag = _text(v, "bag", where, default=name)
+    T = _matrix(v.get("T_world_cam"), (4, 4), where / "T_world_cam")
     R = T[:3, :3]
     if (np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or abs(np.linalg.det(R) - 1) > 1e-6
             or np.abs(T[3] - [0, 0, 0, 1]).max() > 0):
-        raise InputError(f"{path}: view {name}: T_world_cam is not a rigid transform "
-                         "(rotation must be orthonormal with det +1, last row 0 0 0 1)")
+        raise (where / "T_world_cam").error(f"view {name}: T_world_cam is not a rigid transform (rotation must "
+                                            "be orthonormal with det +1, last row 0 0 0 1)")
+    azimuth = _number(v, "azimuth_deg", where, required=False, low=-1e6, high=1e6)
+    frames = _text(v, "frames", where)
+    gt = _mapping(v.get("ground_truth"), where / "ground_truth", required=False)
+    if gt is not None:
+        for k in ("clock_offset_ns", "device_offset_ns"):
+            _int_ns(gt, k, where / "ground_truth")
+    sync = _mapping(v.get("sync"), where / "sync", required=False)
+    if sync is not None:
+        _int_ns(sync, "offset_ns", where / "sync")
+    return ViewRecord(name=name, bag=root / bag, split=split,
+                      azimuth_deg=None if azimuth is None else float(azimuth), T_world_cam=T,
+                      frames=None if frames is None else root / frames, ground_truth=gt, sync=sync)
