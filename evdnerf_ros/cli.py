@@ -12,6 +12,7 @@ import json
 import signal
 import sys
 import threading
+import warnings
 from pathlib import Path
 
 from . import __version__
@@ -606,9 +607,15 @@ def _fail(message: str) -> int:
     return 2
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings (dropped events, clamped display ranges) as one line each, like errors."""
+    print("evdnerf: warning: " + " ".join(str(message).split()), file=sys.stderr)
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    warnings.showwarning = _show_warning
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _on_sigterm)
     try:

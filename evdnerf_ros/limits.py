@@ -74,6 +74,9 @@ def check_number(value, name: str, *, low=None, high=None, low_open: bool = Fals
     if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "__index__") \
             and not _is_numpy_number(value):
         raise InputError(f"{name}: expected a number, got {value!r}")
+    if isinstance(value, int) and abs(value) > 10**300:
+        # more digits than a float holds (a YAML or JSON integer can have any number)
+        raise InputError(f"{name}: a {len(str(abs(value)))}-digit number is outside any valid range")
     if integer:
         if isinstance(value, float) or (_is_numpy_number(value) and not _is_numpy_integer(value)):
             if not math.isfinite(value) or value != int(value):

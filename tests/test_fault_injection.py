@@ -66,7 +66,7 @@ def run(argv, cwd, *, timeout=120, preexec_fn=None, env=None) -> subprocess.Comp
 
 def error_lines(stderr: str) -> list[str]:
     """stderr lines, less the notes about removed stale partial outputs and a node's log lines."""
-    return [ln for ln in stderr.splitlines() if ln.strip() and not ln.startswith(("evdnerf: removed ", "[INFO]"))]
+    return [ln for ln in stderr.splitlines() if ln.strip() and not ln.startswith(("evdnerf: removed ", "evdnerf: warning: ", "[INFO]"))]
 
 
 def assert_clean_failure(res, culprit: str) -> str:

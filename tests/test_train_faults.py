@@ -357,7 +357,7 @@ BAD_CONFIGS = [
     ("", "empty"),
     ("# nothing\n", "empty"),
     ("rays: [unclosed\n", "not valid YAML"),
-    (b"rays: 5\n\xff\xfe\n", r"not UTF-8 text \(byte offset 8\)"),
+    (b"rays: 5\n\xff\xfe\n", r"byte offset 8: byte 0xff on line 2 is not UTF-8 text"),
     ("a: " + "[" * 1000 + "]" * 1000 + "\n", "YAML nested too deeply"),
     ("rays: [" + ", ".join(["1"] * 5000) + "]\n", r"rays: expected a number, got \[1, 1, .{0,60}$"),
 ]

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..events.slicing import window_edges
 from ..field.render import render_image
+from ..limits import check_memory
 from ..sim.pose_track import PoseTrack
 from ..train.sampler import camera_of
 from .metrics import brightness_align, event_metrics, protocol_windows, psnr
@@ -161,6 +162,10 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
         for split, views in splits.items():
             if not views:
                 continue
+            # ground truth and prediction stacks of every window of every view, float32, plus metric copies
+            check_memory(4.0 * 4 * len(views) * n * max(factors) * ts.width * ts.height,
+                         f"{split}: {len(views)} views x {n * max(factors)} windows of {ts.width}x{ts.height}",
+                         "lower --windows or --max-views")
             for factor in factors:
                 pred, gt, m = evaluate_views(field, ts, views, n * factor, box=box,
                                              n_samples=cfg.n_samples, log_eps=cfg.log_eps,

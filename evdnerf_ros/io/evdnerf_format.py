@@ -69,7 +69,8 @@ from ..atomic import atomic_output
 from ..errors import FormatError, InputError
 from ..events.slicing import window_edges
 from ..events.types import EVENT_DTYPE
-from .guard import check_value, read_text, writing
+from ..limits import check_number
+from .guard import read_text, writing
 from .npz import check_npy_file
 from .trainingset import C_MAX, T_LIMIT, TrainingSet, ViewData, write_training_set
 
@@ -281,16 +282,16 @@ def _check_extension(ext, where: str, n_frames: int) -> None:
         raise FormatError(f"`{EXT_KEY}` must be an object", source=where)
     name = f"{where}: {EXT_KEY}"
     for k in ("t_start_ns", "t_end_ns"):
-        check_value(ext.get(k), f"{name}.{k}", integer=True, low=-T_LIMIT, high=T_LIMIT)
+        check_number(ext.get(k), f"{name}.{k}", integer=True, low=-T_LIMIT, high=T_LIMIT)
     if ext["t_end_ns"] <= ext["t_start_ns"]:
         raise FormatError(f"{EXT_KEY}.t_end_ns must be after t_start_ns", source=where)
     for k in ("width", "height"):
-        check_value(ext.get(k), f"{name}.{k}", integer=True, low=1, high=65535)
+        check_number(ext.get(k), f"{name}.{k}", integer=True, low=1, high=65535)
     for k in ("c_pos", "c_neg"):
         if k in ext:
-            check_value(ext[k], f"{name}.{k}", low=0, low_open=True, high=C_MAX)
+            check_number(ext[k], f"{name}.{k}", low=0, low_open=True, high=C_MAX)
     if "downsample" in ext:
-        check_value(ext["downsample"], f"{name}.downsample", integer=True, low=1, high=64)
+        check_number(ext["downsample"], f"{name}.downsample", integer=True, low=1, high=64)
     _check_K_list(ext.get("K"), f"{name}.K")
     views = ext.get("views")
     if views is not None:
@@ -299,7 +300,7 @@ def _check_extension(ext, where: str, n_frames: int) -> None:
         for i, v in enumerate(views):
             if not isinstance(v, dict) or not isinstance(v.get("name"), str) or not v["name"]:
                 raise FormatError(f"{EXT_KEY}.views[{i}] needs a `name`", source=where)
-            check_value(v.get("num_frames"), f"{name}.views[{i}].num_frames", integer=True, low=2,
+            check_number(v.get("num_frames"), f"{name}.views[{i}].num_frames", integer=True, low=2,
                          high=n_frames)
             if "K" in v:
                 _check_K_list(v["K"], f"{name}.views[{i}].K")

@@ -160,14 +160,6 @@ def h5_text(attrs, key: str, path, *, required: bool = True, default=None) -> st
     return value
 
 
-def check_value(value, name: str, **limits):
-    """check_number for values parsed from YAML / JSON, whose integers may have any number of
-    digits (too many for a float: refused here, with the digit count instead of the digits)."""
-    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 10**300:
-        raise InputError(f"{name}: a {len(str(abs(value)))}-digit number is outside any valid range")
-    return check_number(value, name, **limits)
-
-
 def read_text(path, *, what: str = "file", max_bytes: int = MAX_TEXT_BYTES) -> str:
     """The UTF-8 text of a configuration file (YAML / JSON / CSV); errors name the file and,
     for bytes that are not UTF-8, their offset."""

@@ -91,13 +91,16 @@ def _applies(key: str, node: str, namespace: str) -> bool:
 
 def load_params_file(path, node: str, namespace: str = "/") -> dict[str, Any]:
     """The flattened ``ros__parameters`` a file gives node `node` in `namespace`."""
+    from ..io.guard import read_text
+
     path = Path(path)
+    text = read_text(path, what="parameter file")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read the parameter file ({exc.strerror})") from None
+        data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise InputError(f"{path}: not valid YAML ({exc})") from None
+    except RecursionError:
+        raise InputError(f"{path}: YAML nested too deeply") from None
     if data is None:
         return {}
     if not isinstance(data, dict):

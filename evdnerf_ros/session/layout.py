@@ -23,7 +23,8 @@ import yaml
 
 from ..atomic import atomic_output
 from ..errors import InputError
-from ..io.guard import check_value, read_text
+from ..io.guard import read_text
+from ..limits import check_number
 from ..io.trainingset import C_MAX, T_LIMIT
 
 SESSION_FORMAT = "evdnerf-rig-session"
@@ -119,7 +120,7 @@ def _parse_yaml(path: Path):
 
 # =========================================================================== schema
 #
-# One check of everything the toolkit reads from session.yaml: types, ranges (check_value),
+# One check of everything the toolkit reads from session.yaml: types, ranges (check_number),
 # required keys. Other keys are kept as they are (they are the session's own record).
 
 # Contrast thresholds outside (0, C_MAX] and times beyond +-T_LIMIT ns are refused, as in a
@@ -173,7 +174,7 @@ def _number(sec: dict, key: str, where: _Where, *, required: bool = True, **limi
         else:   # YAML 1.1 reads 1e-3 (no dot) as text
             raise (where / key).error(f"expected a number, got the text {value!r} (YAML reads exponents "
                                       "without a dot as text: write 0.001 or 1.0e-3)")
-    return check_value(value, str(where / key), **limits)
+    return check_number(value, str(where / key), **limits)
 
 
 def _text(sec: dict, key: str, where: _Where, *, required: bool = False, default=None) -> str | None:

@@ -192,20 +192,10 @@ class TrainConfig:
         """Read a YAML mapping of option names; a file that is not one (empty, not UTF-8,
         not YAML, too big) is an InputError naming it."""
         import yaml
+        from ..io.guard import read_text
+
         path = Path(path)
-        if not path.exists():
-            raise InputError(f"{path}: no such config file")
-        if not path.is_file():
-            raise InputError(f"{path}: is not a regular file; --config takes a YAML file")
-        if path.stat().st_size > MAX_CONFIG_BYTES:
-            raise InputError(f"{path}: {path.stat().st_size} bytes is too big for a training config "
-                             f"(at most {MAX_CONFIG_BYTES}); is it the right file?")
-        raw = path.read_bytes()
-        try:
-            text = raw.decode("utf-8")
-        except UnicodeDecodeError as exc:
-            raise InputError(f"{path}: not UTF-8 text (byte offset {exc.start}); a training "
-                             "config is a YAML mapping of option names to values") from None
+        text = read_text(path, what="training config (a YAML file)", max_bytes=MAX_CONFIG_BYTES)
         try:
             data = yaml.safe_load(text)
         except yaml.YAMLError as exc:
