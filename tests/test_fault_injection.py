@@ -43,7 +43,8 @@ def ws(tmp_path_factory) -> dict[str, Path]:
                               "--jobs", "1"], **quiet)
     subprocess.run(EVDNERF + ["convert-events", "S/view_00", "e.npz"], **quiet)
     subprocess.run(EVDNERF + ["convert", "S", "-o", "T.h5", "--offsets", "ground-truth"], **quiet)
-    return {"root": root, "S": root / "S", "E": root / "e.npz", "T": root / "T.h5"}
+    subprocess.run(EVDNERF + ["train", "T.h5", "-o", "R", "--iters", "2", "--no-eval"], **quiet)
+    return {"root": root, "S": root / "S", "E": root / "e.npz", "T": root / "T.h5", "R": root / "R"}
 
 
 def snapshot(*roots: Path) -> dict:
@@ -87,7 +88,7 @@ def no_partials(*roots: Path) -> list[str]:
 @dataclass
 class Case:
     id: str
-    argv: list                       # {S} {E} {T} {tmp} are filled in
+    argv: list                       # {S} {E} {T} {R} {tmp} are filled in
     culprit: str                     # must appear in the error line
     setup: Callable | None = None    # setup(tmp, ws) makes the bad input / existing output
     kind: str = "flag"               # flag | existing | corrupt | typed (the README table groups by it)
@@ -132,6 +133,13 @@ def _flipped(src_key, name, offset_frac):
     return setup
 
 
+def _flip_file(path, offset_frac):
+    data = bytearray(path.read_bytes())
+    i = int(len(data) * offset_frac)
+    data[i] ^= 0x01
+    path.write_bytes(bytes(data))
+
+
 def _truncated(src_key, name, frac):
     def setup(tmp, ws):
         data = ws[src_key].read_bytes()
@@ -160,6 +168,15 @@ CASES = [
     Case("convert-n-windows-1e30", ["convert", "{S}", "-o", "{tmp}/x", "--format", "evdnerf",
                                     "--n-windows", "1e30"], "--n-windows"),
     Case("eval-windows-0", ["eval", "{tmp}", "{T}", "--windows", "0"], "--windows"),
+    Case("eval-windows-huge", ["eval", "{R}", "{T}", "--windows", "100000"], "--windows",
+         extra={"env": {"EVDNERF_MEMORY_LIMIT": "256M"}}),
+    Case("eval-flipped-checkpoint", ["eval", "{tmp}/R2", "{T}"], "checkpoint.pt",
+         lambda tmp, ws: (shutil.copytree(ws["R"], tmp / "R2"), _flip_file(tmp / "R2" / "checkpoint.pt", 0.5)),
+         "corrupt"),
+    Case("train-init-flipped", ["train", "{T}", "-o", "{tmp}/r", "--iters", "1", "--init", "{tmp}/R2/checkpoint.pt"],
+         "checkpoint.pt",
+         lambda tmp, ws: (shutil.copytree(ws["R"], tmp / "R2"), _flip_file(tmp / "R2" / "checkpoint.pt", 0.3)),
+         "corrupt"),
     Case("eval-max-views-neg", ["eval", "{tmp}", "{T}", "--max-views=-3"], "--max-views"),
     Case("train-eval-views-neg", ["train", "{T}", "-o", "{tmp}/r", "--iters", "1", "--eval-views=-1"],
          "--eval-views"),
@@ -278,7 +295,7 @@ CASES = [
 
 
 def _fill(argv, tmp, ws):
-    return [str(a).format(S=ws["S"], E=ws["E"], T=ws["T"], tmp=tmp) for a in argv]
+    return [str(a).format(S=ws["S"], E=ws["E"], T=ws["T"], R=ws["R"], tmp=tmp) for a in argv]
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
@@ -288,7 +305,7 @@ def test_bad_input_fails_cleanly(case, ws, tmp_path):
     if case.setup:
         case.setup(tmp, ws)
     before = snapshot(tmp, ws["root"])
-    res = run(_fill(case.argv, tmp, ws), tmp)
+    res = run(_fill(case.argv, tmp, ws), tmp, env={**os.environ, **case.extra.get("env", {})})
     assert_clean_failure(res, case.culprit)
     after = snapshot(tmp, ws["root"])
     assert after == before, "changed: " + str(sorted(set(after.items()) ^ set(before.items()))[:6])
