@@ -26,6 +26,14 @@ Methods, each a curve over its knob:
 * ``adaptive_dlog_only``: bisection on log change alone (max |dL| per interval 2 .. 0.05 C,
   no linearity check) - the simpler rule, for comparison.
 
+Max step (``swing``): an edge 0.3 px wide sweeps 48 px right and back twice, so the images
+at 0, SPAN/2 and SPAN are identical (a servo's there-and-back swing). Adaptive sampling
+(tolerance 0.1 C, min step SPAN/4096) with max steps SPAN .. SPAN/64, without and with the
+motion guard (``travel_px``: the edge's speed bound times the piece length, 1 px allowed);
+count error against the same sampler with max step = min step (the fine grid). Without
+the guard a max step of SPAN sees no motion at all; with it every max step must give the
+fine grid's counts.
+
 Errors: per pixel the k-th ON event is matched with the k-th exact ON event and OFF events
 from the end (a missed peak removes the first OFF events); timing error = |t - t_exact|
 over matched events (max and median), count error = sum |n - n_exact| / sum n_exact.
@@ -145,6 +153,63 @@ class Bar(Edge):
         return 0.5 * (lo + hi)
 
 
+class Swing:
+    name = "swing"
+
+    def __init__(self, w=64, h=4, width=0.3):
+        self.w, self.h, self.width = w, h, width
+        self.x = np.arange(w)[None, :]
+        self.amp = C * (3.5 + np.arange(h))[:, None]
+        self.lo = -2.0
+        self.speed_px_per_ns = 48.0 * 2.0 * np.pi / SPAN   # max |d/dt 48 sin^2(2 pi t / SPAN)|
+
+    def edge(self, t):
+        return 8.0 + 48.0 * np.sin(2.0 * np.pi * t / SPAN) ** 2
+
+    def __call__(self, t):
+        L = self.lo + self.amp * _sig((self.edge(float(t)) - self.x) / self.width)
+        return np.exp(L) - LOG_EPS
+
+    def travel(self, a, b):
+        return self.speed_px_per_ns * (b - a)
+
+
+def run_max_step(scene):
+    """Count error against the fine grid for max steps SPAN .. SPAN/64, guard off and on."""
+    min_step = SPAN // 4096
+
+    def go(max_step, guard):
+        gen = EventGenerator(scene.w, scene.h)
+        t0 = time.perf_counter()
+        ev, stats = simulate_renderer(scene, 0, SPAN, gen, tolerance_c=0.1, min_step_ns=min_step,
+                                      max_step_ns=max_step,
+                                      travel_px=scene.travel if guard else None)
+        wall = time.perf_counter() - t0
+        counts = np.bincount(ev["y"].astype(np.int64) * scene.w + ev["x"],
+                             minlength=scene.w * scene.h)
+        return counts, stats, wall
+
+    fine, fine_stats, _ = go(min_step, False)
+    runs = []
+    for guard in (False, True):
+        for k in range(7):
+            max_step = SPAN >> k
+            counts, stats, wall = go(max_step, guard)
+            runs.append({"method": "adaptive_guard" if guard else "adaptive_no_guard",
+                         "knob": max_step, "renders": stats.renders, "wall_s": wall,
+                         "events": int(counts.sum()), "fine_events": int(fine.sum()),
+                         "count_error": float(np.abs(counts - fine).sum() / fine.sum()),
+                         "motion_splits": stats.motion_splits})
+            r = runs[-1]
+            print(f"{scene.name:13s} {r['method']:19s} {max_step / 1e6:8.3f} ms: renders "
+                  f"{r['renders']:5d}  events {r['events']:5d} / {r['fine_events']}  count err "
+                  f"{r['count_error']:.4f}")
+    summary = {m: {"max_count_error": max(r["count_error"] for r in runs if r["method"] == m)}
+               for m in ("adaptive_no_guard", "adaptive_guard")}
+    return {"width": scene.w, "height": scene.h, "min_step_ns": min_step,
+            "fine_renders": fine_stats.renders, "runs": runs, "summary": summary}
+
+
 def errors(scene, exact, ev):
     terr, n_exact, n_diff = [], 0, 0
     pix = ev["y"].astype(np.int64) * scene.w + ev["x"]
@@ -201,7 +266,22 @@ def plot(result, path):
     import matplotlib.pyplot as plt
 
     scenes = list(result["scenes"])
-    fig, axes = plt.subplots(len(scenes), 4, figsize=(19, 4.2 * len(scenes)), squeeze=False)
+    fig, axes = plt.subplots(len(scenes) + 1, 4, figsize=(19, 4.2 * (len(scenes) + 1)),
+                             squeeze=False)
+    swing = result.get("max_step")
+    for c in range(4):
+        axes[-1, c].set_visible(c == 0)
+    if swing:
+        ax = axes[-1, 0]
+        for method, style in (("adaptive_no_guard", "o--"), ("adaptive_guard", "s-")):
+            pts = [p for p in swing["runs"] if p["method"] == method]
+            ax.semilogx([p["knob"] / 1e6 for p in pts], [p["count_error"] for p in pts], style,
+                        label=method)
+        ax.set_xlabel("max step (ms)")
+        ax.set_ylabel("count error vs the fine grid")
+        ax.set_title("swing: there-and-back edge", fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
     for r, sname in enumerate(scenes):
         rows = result["scenes"][sname]["runs"]
         for method, style in (("fixed", "o-"), ("adaptive", "s-"), ("adaptive_dlog_only", "^--")):
@@ -268,6 +348,8 @@ def main(argv=None):
                                         "tau_ns": scene.tau, "runs": runs,
                                         "summary": summary}
         print(scene.name, json.dumps(summary))
+    result["max_step"] = run_max_step(Swing())
+    print("swing", json.dumps(result["max_step"]["summary"]))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "sampling_error.json").write_text(json.dumps(result, indent=2))

@@ -22,6 +22,8 @@ def parse_duration_ns(text: str, *, name: str = "time") -> int:
     except InvalidOperation:
         raise InputError(f"{name}: cannot read {text!r} as a time; write e.g. 0.5, 0.5s, 20ms, "
                          "150us or 1000ns") from None
+    if not value.is_finite():
+        raise InputError(f"{name}: {text!r} is not a finite time")
     if value != value.to_integral_value():
         raise InputError(f"{name}: {text!r} is not a whole number of nanoseconds")
     return int(value)

@@ -178,3 +178,62 @@ def test_bad_renderers_and_arguments():
     g.reset(np.ones((2, 3)), 5)
     with pytest.raises(InputError, match="not at t_start"):
         simulate_renderer(lambda t: np.ones((2, 3)), 0, 10, g)
+
+
+class Swing:
+    """An edge 0.3 px wide sweeps 12 px right and back twice over `span`: the images at 0,
+    span / 2 and span are identical (a servo's there-and-back swing)."""
+
+    def __init__(self, span, w=16):
+        self.span, self.x = span, np.arange(w)[None, :]
+        self.speed_px_per_ns = 12.0 * 2.0 * np.pi / span     # max |d/dt| of the edge
+
+    def __call__(self, t):
+        edge = 2.0 + 12.0 * np.sin(2.0 * np.pi * t / self.span) ** 2
+        return np.exp(-2.0 + 0.7 / (1.0 + np.exp(-(edge - self.x) / 0.3))) - LOG_EPS
+
+    def travel(self, a, b):
+        return self.speed_px_per_ns * (b - a)
+
+
+def _counts(ev, w):
+    return np.bincount(ev["x"].astype(np.int64), minlength=w)
+
+
+def test_motion_guard_keeps_a_there_and_back_swing_whatever_max_step():
+    span, w = 100_000_000, 16
+    min_step = span // 256
+    scene = Swing(span, w)
+    fine, fs = simulate_renderer(scene, 0, span, EventGenerator(w, 1), min_step_ns=min_step,
+                                 max_step_ns=min_step)
+    assert fine.size > 100 and fs.at_min_step == 256
+    # Without the guard three identical images say "nothing moves": the bug the guard fixes.
+    blind, _ = simulate_renderer(scene, 0, span, EventGenerator(w, 1), min_step_ns=min_step,
+                                 max_step_ns=span)
+    assert blind.size == 0
+    for max_step in (span, span // 2, span // 16):
+        ev, st = simulate_renderer(scene, 0, span, EventGenerator(w, 1), min_step_ns=min_step,
+                                   max_step_ns=max_step, travel_px=scene.travel)
+        assert st.motion_splits > 0
+        assert _counts(ev, w).tolist() == _counts(fine, w).tolist(), max_step
+
+
+def test_every_max_step_refines_to_the_same_grid():
+    """Frames fed to the generator lie on t_start + j * min_step (or t_end), whatever
+    max_step is; a run with max_step = min_step feeds every grid point."""
+    span, min_step, t0 = 10_000_003, 100_000, 7
+    scene = SigmoidEdge(n=8, tau_ns=300_000, span=span)
+    for max_step in (min_step, 3 * min_step, 64 * min_step, span):
+        fed = []
+        simulate_renderer(scene, t0, t0 + span, EventGenerator(8, 1), min_step_ns=min_step,
+                          max_step_ns=max_step, progress=fed.append)
+        fed = np.array(fed) - t0
+        assert fed[-1] == span and np.all((fed[:-1] % min_step) == 0) and np.all(np.diff(fed) > 0)
+        if max_step == min_step:
+            assert fed.size == -(-span // min_step)
+
+
+def test_motion_guard_arguments():
+    with pytest.raises(InputError, match="max_travel_px"):
+        simulate_renderer(lambda t: np.ones((2, 3)), 0, 10_000, EventGenerator(3, 2),
+                          travel_px=lambda a, b: 0.0, max_travel_px=float("nan"))

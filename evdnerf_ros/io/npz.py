@@ -66,6 +66,14 @@ def check_npy_file(path, *, loads: bool = True) -> None:
         check_memory(nbytes, f"{source}: array of shape {shape}", "it needs a machine with more memory")
 
 
+def _is_npy(path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(6) == b"\x93NUMPY"
+    except OSError:
+        return False
+
+
 def load_npz(path, names, *, optional=(), what: str = "arrays") -> dict[str, np.ndarray]:
     """The arrays `names` (all required) and those of `optional` that exist, from an .npz.
 
@@ -81,6 +89,9 @@ def load_npz(path, names, *, optional=(), what: str = "arrays") -> dict[str, np.
     except IsADirectoryError:
         raise InputError(f"{source}: is a folder, not an .npz file") from None
     except _NPZ_ERRORS as exc:
+        if _is_npy(path):
+            raise FormatError(f"is a single .npy array, not an .npz archive; {what} holds {names}",
+                              source=source) from None
         raise FormatError(f"not a readable .npz file ({exc}); {_FIX}", source=source) from None
     with zf:
         try:

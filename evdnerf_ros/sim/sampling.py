@@ -5,16 +5,36 @@ synthetic scene renderer and a trained radiance field both plug in. Two modes:
 
 * ``"fixed"``: render at a fixed rate (frame times on the integer-ns grid
   ``t_start + i * span // n``, both ends included).
-* ``"adaptive"``: bisection. The span is first cut into pieces of at most
-  ``max_step_ns``. For a piece [a, b] the sampler renders both ends and the midpoint m
-  and accepts the piece when the midpoint's log image deviates from the linear
-  interpolation of the ends by less than ``tolerance_c * C`` at every pixel (C = the
-  smaller of the generator's nominal C+ and C-) and, when ``max_dlog_c`` is given, when
-  no pixel's log changes by more than ``max_dlog_c * C`` across the piece. Otherwise
-  it splits the piece in two. A piece whose halves would be shorter than
-  ``min_step_ns`` is accepted as is (counted in ``stats.at_min_step``). Accepted pieces
-  are fed to the generator in time order as two steps (a -> m -> b), since m was
-  rendered anyway. Renders are memoised: every time is rendered once.
+* ``"adaptive"``: bisection on a fixed grid. Grid point j is ``t_start + j * min_step_ns``
+  (the last one is t_end). The span is cut into top pieces of ``max_step_ns // min_step_ns``
+  grid steps. For a piece [a, b] the sampler renders both ends and the grid point m
+  halfway between them and accepts the piece when the midpoint's log image deviates
+  from the linear interpolation of the ends by less than ``tolerance_c * C`` at every
+  pixel (C = the smaller of the generator's nominal C+ and C-) and, when ``max_dlog_c`` is
+  given, when no pixel's log changes by more than ``max_dlog_c * C`` across the piece.
+  Otherwise it splits the piece in two. A piece of one grid step is fed as is (counted in
+  ``stats.at_min_step``). Accepted pieces are fed to the generator in time order as two
+  steps (a -> m -> b), since m was rendered anyway. Renders are memoised: every time is
+  rendered once.
+
+Why a grid, and why a motion guard (a simulated fork lost all its events with a 1 s max
+step, and 4-8 % at 100-500 ms):
+
+* The finest step used to be "whatever max_step / 2**k first falls below 2 * min_step", so
+  it moved with max_step, and with it which brief features were caught (a tine's top face,
+  seen edge-on, covers a pixel for 0.2 ms). On the grid every max_step refines to the same frames:
+  a coarser max_step can only leave out grid points where the midpoint test vouches for
+  linearity, never move them.
+* Three images cannot see a motion that goes there and back between them: the fork's
+  servo swing 90 -> 135 -> 45 -> 90 deg looks identical at its start, middle and end. No
+  test on a black-box renderer can be sound over pieces longer than the fastest such
+  motion, so the step must be bounded there: a caller that knows its motion passes
+  ``travel_px(a, b)``, a bound on how far anything in the image moves during [a, b]
+  (`evdnerf_ros.sim.motion` computes it for scenes), and pieces travelling more than
+  ``max_travel_px`` (1 pixel) are split without trusting the test. Within an accepted
+  piece a there-and-back motion is then sub-pixel. Without ``travel_px`` (a trained field
+  in ``publish``) it is ``max_step_ns`` that must stay below the shortest there-and-back
+  motion of the scene.
 
 The event generator interpolates log intensity linearly between the frames it gets, so
 the midpoint test bounds exactly the error it makes: for a smooth signal the log error
@@ -40,6 +60,8 @@ from .logmap import log_intensity
 DEFAULT_MAX_STEP_NS = 33_333_333
 #: Default smallest step of the adaptive mode (1 us).
 DEFAULT_MIN_STEP_NS = 1_000
+#: Default motion guard: an accepted piece lets nothing move further than this (pixels).
+DEFAULT_MAX_TRAVEL_PX = 1.0
 
 
 @dataclass
@@ -50,7 +72,8 @@ class SamplingStats:
     renders: int = 0            # calls to render (each time rendered once)
     frames_fed: int = 0         # frames given to the generator after the start frame
     intervals: int = 0          # accepted adaptive pieces (fixed mode: frame intervals)
-    at_min_step: int = 0        # pieces accepted only because min_step_ns was reached
+    at_min_step: int = 0        # pieces of one grid step (min_step_ns), fed without a test
+    motion_splits: int = 0      # pieces split because travel_px exceeded max_travel_px
     smallest_step_ns: int = 0   # shortest interval fed to the generator
     largest_step_ns: int = 0    # longest interval fed to the generator
     max_deviation_c: float = 0.0  # largest accepted midpoint deviation, in units of C
@@ -72,13 +95,18 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
                       max_dlog_c: float | None = None,
                       min_step_ns: int = DEFAULT_MIN_STEP_NS,
                       max_step_ns: int = DEFAULT_MAX_STEP_NS,
+                      travel_px: Callable[[int, int], float] | None = None,
+                      max_travel_px: float = DEFAULT_MAX_TRAVEL_PX,
                       progress: Callable[[int], None] | None = None):
     """Render on (t_start, t_end] and return ``(events, SamplingStats)``.
 
     If `generator` has no frame yet, ``render(t_start)`` starts it; otherwise it must be
     at ``t_start`` already (a continued stream) and its last frame is reused. A renderer
     with a pose argument plugs in as ``lambda t: renderer(T_world_cam, t)``.
-    `progress`, if given, is called with the time (ns) of every frame fed to the generator.
+    `travel_px(a, b)`, if given, bounds how far (pixels) anything in the image can move
+    during [a, b]; adaptive pieces travelling further than `max_travel_px` are split without
+    trusting the midpoint test (see the module notes). `progress`, if given, is called with
+    the time (ns) of every frame fed to the generator.
     """
     wall0 = time.perf_counter()
     t_start = _as_time(t_start, "t_start")
@@ -114,14 +142,16 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
         generator.reset_log(L_start, t_start)
 
     chunks: list[np.ndarray] = []
-    steps: list[int] = []
 
     def feed(L, t_prev, t):
         ev = generator.step_log(L, t)
         if ev.size:
             chunks.append(ev)
         stats.frames_fed += 1
-        steps.append(t - t_prev)
+        dt = t - t_prev
+        if stats.frames_fed == 1 or dt < stats.smallest_step_ns:
+            stats.smallest_step_ns = dt
+        stats.largest_step_ns = max(stats.largest_step_ns, dt)
         if progress is not None:
             progress(t)
 
@@ -148,6 +178,10 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
         max_step = _positive_int("max_step_ns", max_step_ns)
         if min_step > max_step:
             raise InputError(f"min_step_ns {min_step} is larger than max_step_ns {max_step}")
+        if travel_px is not None:
+            travel_limit = float(max_travel_px)
+            if not np.isfinite(travel_limit) or travel_limit <= 0:
+                raise InputError(f"max_travel_px must be > 0 (got {max_travel_px!r})")
         limit = tol * c_ref
         dlog_limit = None if max_dlog_c is None else float(max_dlog_c) * c_ref
         cache = {t_start: L_start}
@@ -158,38 +192,50 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
                 L = cache[t] = render_log(t)
             return L
 
-        m = max(1, math.ceil(span / max_step))
-        bounds = [t_start + (i * span) // m for i in range(m + 1)]
-        stack = [(bounds[i], bounds[i + 1]) for i in range(m - 1, -1, -1)
-                 if bounds[i + 1] > bounds[i]]
-        while stack:
-            a, b = stack.pop()
-            La, Lb = get(a), get(b)
-            if b - a < 2 * min_step:
-                stats.at_min_step += 1
-                stats.intervals += 1
-                feed(Lb, a, b)
-                del cache[a]
-                continue
-            mid = a + (b - a) // 2
-            Lm = get(mid)
-            w = (mid - a) / (b - a)
-            dev = float(np.max(np.abs(Lm - (La + (Lb - La) * w))))
-            ok = dev < limit
-            if ok and dlog_limit is not None:
-                ok = float(np.max(np.abs(Lb - La))) <= dlog_limit
-            if ok:
-                stats.intervals += 1
-                stats.max_deviation_c = max(stats.max_deviation_c, dev / c_ref)
-                feed(Lm, a, mid)
-                feed(Lb, mid, b)
-                del cache[a], cache[mid]
-            else:
-                stack.append((mid, b))
-                stack.append((a, mid))
+        # The grid: point j at t_start + j * min_step (the last one at t_end). Pieces are
+        # runs of whole grid steps, so every max_step refines to the same frames: a coarser
+        # max_step can only leave grid points out, never move them.
+        n = -(-span // min_step)
+
+        def at(j):
+            return t_end if j >= n else t_start + j * min_step
+
+        top = max_step // min_step                  # grid steps per top piece
+        for first in range(0, n, top):
+            stack = [(first, min(first + top, n))]
+            while stack:
+                lo, hi = stack.pop()
+                a, b = at(lo), at(hi)
+                if hi - lo == 1:                    # one grid step: the finest there is
+                    stats.at_min_step += 1
+                    stats.intervals += 1
+                    feed(get(b), a, b)
+                    del cache[a]
+                    continue
+                mid = (lo + hi) // 2
+                if travel_px is not None and travel_px(a, b) > travel_limit:
+                    # Something may move further than the midpoint test can vouch for.
+                    stats.motion_splits += 1
+                    stack.append((mid, hi))
+                    stack.append((lo, mid))
+                    continue
+                m = at(mid)
+                La, Lb, Lm = get(a), get(b), get(m)
+                w = (m - a) / (b - a)
+                dev = float(np.max(np.abs(Lm - (La + (Lb - La) * w))))
+                ok = dev < limit
+                if ok and dlog_limit is not None:
+                    ok = float(np.max(np.abs(Lb - La))) <= dlog_limit
+                if ok:
+                    stats.intervals += 1
+                    stats.max_deviation_c = max(stats.max_deviation_c, dev / c_ref)
+                    feed(Lm, a, m)
+                    feed(Lb, m, b)
+                    del cache[a], cache[m]
+                else:
+                    stack.append((mid, hi))
+                    stack.append((lo, mid))
     events = np.concatenate(chunks) if chunks else empty_events()
     stats.events = int(events.size)
-    if steps:
-        stats.smallest_step_ns, stats.largest_step_ns = int(min(steps)), int(max(steps))
     stats.wall_seconds = time.perf_counter() - wall0
     return events, stats

@@ -6,6 +6,10 @@ and what is allowed.  World axes are z-up, lengths in metres, angles in degrees 
 (radians inside), times in seconds in YAML (int64 ns inside, converted exactly through
 decimal text: ``0.1`` is exactly 100000000 ns; strings such as ``"20ms"`` work too).
 
+Limits: the file is UTF-8 YAML of at most 16 MiB, not empty; every number is finite and
+within +-1e6 (metres, degrees, intensities), every time within +-1e6 s; texture scales are
+>= 1e-6; a scene has at most 10,000 objects (YAML aliases count each time they are used).
+
 Schema (``?`` = optional, with its default)::
 
     name?: str                          (file stem)
@@ -90,6 +94,15 @@ from .trajectory import (HingeMotion, KeyframeTrajectory, angle_keyframes, quat_
                          quat_normalize, quat_to_matrix, rigid)
 
 PRESET_DIR = Path(__file__).resolve().parents[2] / "config" / "scenes"
+#: Largest magnitude of any number in a scene file (metres, degrees, intensities): far
+#: beyond any real rig, and small enough that products and float64 texture lookups stay exact.
+MAX_MAGNITUDE = 1e6
+#: Scene times (time.*, keyframes, servo start) lie within +-1e6 s (int64 ns holds 292 years).
+MAX_TIME_NS = 1_000_000 * 1_000_000_000
+#: Objects per scene (groups and parts together, YAML aliases counted each time).
+MAX_OBJECTS = 10_000
+#: Largest scene file read (bytes).
+MAX_SCENE_BYTES = 16 << 20
 OBJECT_TYPES = ("box", "sphere", "cylinder", "ellipsoid", "group", "mesh")
 TEXTURE_TYPES = ("checker", "stripes", "noise")
 
@@ -214,6 +227,22 @@ class Scene:
             return None
         return min(s[0] for s in spans), max(s[1] for s in spans)
 
+    def motion_knots_ns(self) -> list[int]:
+        """Times where a motion may turn: keyframe times and servo segment boundaries."""
+        knots: set[int] = set()
+        for o in self.all_objects():
+            if o.servo is not None:
+                knots.update(int(o.servo.start_ns + b) for b in o.servo.profile.boundaries_ns)
+            elif isinstance(o.motion, KeyframeTrajectory):
+                knots.update(int(x) for x in o.motion.times_ns)
+            elif isinstance(o.motion, HingeMotion):
+                spline = getattr(o.motion.angle_rad, "spline", None)
+                if spline is not None:
+                    knots.update(int(x) for x in spline.times)
+                elif o.motion.span_ns is not None:
+                    knots.update(o.motion.span_ns)
+        return sorted(knots)
+
     @property
     def is_static(self) -> bool:
         return self.motion_span_ns() is None
@@ -306,9 +335,15 @@ class _V:
     def number(self, path, value, *, lo=None, hi=None, lo_open=False, hi_open=False) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             self.fail(path, f"expected a number; got {value!r}")
-        x = float(value)
+        try:
+            x = float(value)
+        except OverflowError:                   # an int beyond float range
+            x = math.inf
         if not math.isfinite(x):
             self.fail(path, f"must be finite; got {value!r}")
+        if abs(x) > MAX_MAGNITUDE:
+            self.fail(path, f"must be within +-{MAX_MAGNITUDE:g} (metres, degrees, intensity); "
+                            f"got {value!r}")
         if lo is not None and (x < lo or (lo_open and x == lo)):
             self.fail(path, f"must be {'>' if lo_open else '>='} {lo}; got {value!r}")
         if hi is not None and (x > hi or (hi_open and x == hi)):
@@ -366,6 +401,8 @@ class _V:
         if not x.is_finite():
             self.fail(path, f"must be finite; got {value!r}")
         ns = x * unit
+        if abs(ns) > MAX_TIME_NS:
+            self.fail(path, f"must be within +-{MAX_TIME_NS // 1_000_000_000} s; got {value!r}")
         if ns != ns.to_integral_value():
             self.fail(path, f"{value!r} is not a whole number of nanoseconds")
         return int(ns)
@@ -431,9 +468,19 @@ def load_scene(name_or_path, *, check_cameras: bool = True) -> Scene:
 def load_scene_file(path, *, check_cameras: bool = True) -> Scene:
     path = Path(path)
     try:
-        text = path.read_text()
+        with open(path, "rb") as f:
+            raw = f.read(MAX_SCENE_BYTES + 1)
     except OSError as exc:
         raise InputError(f"{path}: cannot read scene file: {exc.strerror}") from None
+    if len(raw) > MAX_SCENE_BYTES:
+        raise InputError(f"{path}: scene file is larger than {MAX_SCENE_BYTES >> 20} MiB; "
+                         "is this really a scene YAML?")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise InputError(f"{path}: line {line}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at "
+                         f"offset {exc.start}); save the scene file as UTF-8") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -441,6 +488,11 @@ def load_scene_file(path, *, check_cameras: bool = True) -> Scene:
         where = f" line {mark.line + 1}" if mark is not None else ""
         raise InputError(f"{path}:{where}: not valid YAML: "
                          f"{getattr(exc, 'problem', None) or exc}") from None
+    except RecursionError:
+        raise InputError(f"{path}: YAML nested too deeply") from None
+    if data is None:
+        raise InputError(f"{path}: the scene file is empty; a scene needs at least an "
+                         "'objects' list (see config/scenes/*.yaml)")
     return scene_from_dict(data, source=str(path), base_dir=path.parent,
                            default_name=path.stem, check_cameras=check_cameras)
 
@@ -452,7 +504,9 @@ def scene_from_dict(data, *, source: str = "<scene>", base_dir=None, default_nam
     top = v.mapping("", data, ("name", "description", "time", "background", "lights",
                                "objects", "cameras"), required=("objects",))
     name = v.string("name", top["name"]) if "name" in top else default_name
-    desc = str(top.get("description", ""))
+    desc = top.get("description", "")
+    if not isinstance(desc, str):
+        v.fail("description", f"expected a string; got {type(desc).__name__}")
 
     start_ns, end_ns = 0, 1_000_000_000
     if "time" in top:
@@ -556,7 +610,7 @@ def _texture(v: _V, path, data) -> Texture:
     if "axis" in m:
         axis = "xyz".index(v.choice(_join(path, "axis"), m["axis"], ("x", "y", "z")))
     return Texture(kind,
-                   v.number(_join(path, "scale"), m["scale"], lo=0.0, lo_open=True),
+                   v.number(_join(path, "scale"), m["scale"], lo=1e-6),
                    v.number(_join(path, "contrast"), m.get("contrast", 0.5), lo=0.0, hi=1.0,
                             hi_open=True),
                    v.integer(_join(path, "seed"), m.get("seed", 0), lo=0, hi=2**31 - 1),
@@ -583,6 +637,9 @@ def _object(v: _V, path: str, data, group: SceneObject | None, start_ns: int,
     m = v.mapping(path, data, allowed, required=required)
 
     name = v.string(_join(path, "name"), m["name"]) if "name" in m else path
+    if len(names) >= MAX_OBJECTS:
+        v.fail(path, f"more than {MAX_OBJECTS} objects (YAML aliases count each time they "
+                     "are used)")
     if name in names:
         v.fail(_join(path, "name"), f"duplicate object name {name!r} (also {names[name]})")
     names[name] = path

@@ -24,31 +24,39 @@ Clocks: the scene clock starts at the scene's `time.start_s`. View v's camera cl
 session.yaml) and ticks whole microseconds, as a real sensor does; the servo's device
 clock (`micros()`) reads `scene time + device_offset_ns[v]`. Sync has to find these offsets.
 
+Views run in worker processes (--jobs). On Ctrl-C or SIGTERM the parent ends its workers
+before it re-raises (so the half-written session can be removed with nobody writing into
+it), and a worker dies with its parent even if the parent is SIGKILLed.
+
 Only what the data needs is computed: before the first and after the last moment anything
 moves, the image is static, so one render stands for the whole span (no events there
 without noise); inside the motion span the adaptive sampler renders only as often as the
-log image departs from linear by `tolerance_c` thresholds, and the generator touches only
-pixels whose intensity changed.
+log image departs from linear by `tolerance_c` thresholds and the scene's motion guard
+allows (nothing may move more than a pixel within a piece: `sim/motion.py`), and the
+generator touches only pixels whose intensity changed.
 """
 
 from __future__ import annotations
 
-import math
 import os
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from .. import __version__
 from ..atomic import atomic_output
 from ..errors import InputError
+from ..limits import check_memory, check_number
 from ..events.types import empty_triggers, make_triggers
 from ..session.layout import SESSION_FORMAT, SESSION_FORMAT_VERSION, write_session_yaml
 from .camera import PinholeCamera
 from .generator import EventGenerator
 from .logmap import LOG_EPS
+from .noise import MIN_THRESHOLD
+from .motion import image_travel
 from .render import SceneRenderer
 from .sampling import simulate_renderer
 from .scene import Scene, load_scene
@@ -65,7 +73,13 @@ TRIGGER_PULSE_NS = 1_000_000          # trigger-out pulse width at motion start
 
 @dataclass(frozen=True)
 class SimulationOptions:
-    """Every knob of `evdnerf simulate` (the CLI flags map one to one)."""
+    """Every knob of `evdnerf simulate` (the CLI flags map one to one).
+
+    Each value has a documented range (OPTION_RANGES, checked by `checked()` before the
+    scene is even loaded); what scales with the values (rays per render, blurred frames,
+    ground truth, moving-view poses, renders per view) is estimated before anything is
+    allocated, and an error names the flag to change.
+    """
 
     views: int | None = None              # training views (None: the scene's ring)
     val_views: int | None = None          # validation views (None: the scene's ring; 0: none)
@@ -90,27 +104,65 @@ class SimulationOptions:
     jobs: int = 0                         # worker processes; 0: one per CPU (at most views)
 
     def check(self) -> None:
-        for name in ("c_pos", "c_neg", "eps", "tolerance_c"):
+        """Raise InputError naming the flag of the first value outside OPTION_RANGES."""
+        self.checked()
+
+    def checked(self) -> "SimulationOptions":
+        """These options with every value range-checked (see OPTION_RANGES) and whole numbers
+        made ints; nothing is allocated before this passes."""
+        values = {}
+        for name, (flag, low, high, low_open, integer) in OPTION_RANGES.items():
             v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise InputError(f"simulate: {name.replace('_', '-')} must be finite and > 0, got {v}")
-        if not math.isfinite(self.moving_arc_deg):
-            raise InputError(f"simulate: moving-arc-deg must be finite, got {self.moving_arc_deg}")
-        for name in ("threshold_sigma", "frame_rate_hz", "max_clock_offset_s"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise InputError(f"simulate: {name.replace('_', '-')} must be finite and >= 0, got {v}")
-        for name in ("supersample", "blur_samples", "min_step_ns", "max_step_ns"):
-            if getattr(self, name) < 1:
-                raise InputError(f"simulate: {name.replace('_', '-')} must be >= 1")
-        for name in ("views", "val_views", "gt_times", "refractory_ns", "jobs", "moving_views"):
-            v = getattr(self, name)
-            if v is not None and v < 0:
-                raise InputError(f"simulate: {name.replace('_', '-')} must be >= 0")
-        if self.views == 0:
-            raise InputError("simulate: --views must be >= 1")
-        if self.resolution is not None and min(self.resolution) < 1:
-            raise InputError(f"simulate: resolution must be positive, got {self.resolution}")
+            values[name] = check_number(v, f"simulate: {flag}", low=low, high=high,
+                                        low_open=low_open, integer=integer,
+                                        allow_none=name in ("views", "val_views"))
+        if self.resolution is not None:
+            res = self.resolution
+            if isinstance(res, (str, bytes)) or not hasattr(res, "__len__") or len(res) != 2:
+                raise InputError(f"simulate: --resolution: expected W H (two whole numbers), "
+                                 f"got {res!r}")
+            values["resolution"] = tuple(
+                check_number(x, f"simulate: --resolution {axis}", low=1, high=MAX_IMAGE_SIDE,
+                             integer=True) for axis, x in zip("WH", res))
+        if values["min_step_ns"] > values["max_step_ns"]:
+            raise InputError(f"simulate: --min-step {values['min_step_ns']} ns is longer than "
+                             f"--max-step {values['max_step_ns']} ns; make --min-step <= "
+                             "--max-step")
+        return replace(self, **values)
+
+
+#: Documented ranges of SimulationOptions: field -> (CLI flag, low, high, low exclusive,
+#: whole number). views / val_views may also be None (the scene's ring).
+OPTION_RANGES = {
+    "views": ("--views", 1, 10_000, False, True),
+    "val_views": ("--val-views", 0, 10_000, False, True),
+    "seed": ("--seed", 0, 2**63 - 1, False, True),
+    "c_pos": ("--c-pos", MIN_THRESHOLD, 10.0, False, False),
+    "c_neg": ("--c-neg", MIN_THRESHOLD, 10.0, False, False),
+    "eps": ("--eps", 0.0, 1.0, True, False),
+    "threshold_sigma": ("--sigma", 0.0, 1.0, False, False),
+    "refractory_ns": ("--refractory-ns", 0, 10_000_000_000, False, True),
+    "tolerance_c": ("--tolerance-c", 0.0, 10.0, True, False),
+    "min_step_ns": ("--min-step", 1_000, 100_000_000_000, False, True),
+    "max_step_ns": ("--max-step", 1_000, 3_600_000_000_000, False, True),
+    "supersample": ("--supersample", 1, 16, False, True),
+    "frame_rate_hz": ("--frame-rate", 0.0, 100_000.0, False, False),
+    "blur_samples": ("--blur-samples", 1, 1024, False, True),
+    "gt_times": ("--gt-times", 0, 10_000, False, True),
+    "moving_views": ("--moving-views", 0, 10_000, False, True),
+    "moving_arc_deg": ("--moving-arc-deg", -3600.0, 3600.0, False, False),
+    "max_clock_offset_s": ("--max-clock-offset", 0.0, 86_400.0, False, False),
+    "jobs": ("--jobs", 0, 1024, False, True),
+}
+#: Largest --resolution side (the scene files' intrinsics allow the same).
+MAX_IMAGE_SIDE = 16384
+#: Renders one view may plan (grid steps of the adaptive sampler, blurred-frame samples):
+#: beyond this a run takes days, which is a typo more often than a plan.
+MAX_RENDERS_PER_VIEW = 2_000_000
+#: Bytes per ray of one render (measured peak: ~30-160 for the presets) and per pixel of the
+#: event generator's state plus the sampler's cached log frames.
+RENDER_BYTES_PER_RAY = 256
+GENERATOR_BYTES_PER_PIXEL = 256
 
 
 @dataclass
@@ -139,11 +191,12 @@ class ViewResult:
 def simulate_session(scene_ref, out_dir, options: SimulationOptions = SimulationOptions(), *,
                      overwrite: bool = False, log=print) -> dict:
     """Write a whole session for `scene_ref` (preset name or YAML path); returns session.yaml."""
-    options.check()
+    options = options.checked()
     scene = load_scene(scene_ref)
     camera = scene.camera
     if options.resolution is not None:
         camera = camera.resized(*options.resolution)
+    _check_budget(scene, camera, options)
     tasks = _view_tasks(scene, options)
     wall0 = time.perf_counter()
     with atomic_output(out_dir, overwrite=overwrite, directory=True) as tmp:
@@ -156,6 +209,68 @@ def simulate_session(scene_ref, out_dir, options: SimulationOptions = Simulation
     log(f"simulate: {len(tasks)} views, {sum(r.events for r in results)} events in "
         f"{total:.1f} s -> {out_dir}")
     return session
+
+
+def _n_views(scene: Scene, options: SimulationOptions) -> int:
+    ring = scene.cameras.ring
+    train = ring.views if options.views is None else options.views
+    val = (ring.validation_views or ring.views) if options.val_views is None else options.val_views
+    return train + val + options.moving_views
+
+
+def _workers(options: SimulationOptions, n_views: int) -> int:
+    return max(1, min(options.jobs or (os.cpu_count() or 1), n_views))
+
+
+def _frame_count(scene: Scene, rate_hz: float) -> tuple[int, int]:
+    """(number of blurred frames, frame period ns); (0, 0) when not even one fits."""
+    if rate_hz == 0 or rate_hz * (scene.end_ns - scene.start_ns) < 1e9:
+        return 0, 0
+    period = max(1, int(round(1e9 / rate_hz)))
+    return (scene.end_ns - scene.start_ns) // period, period
+
+
+def _check_budget(scene: Scene, camera: PinholeCamera, options: SimulationOptions) -> None:
+    """Refuse, before anything is allocated, a run whose renders per view or memory would
+    run away; the message names the flag to change."""
+    duration = scene.end_ns - scene.start_ns
+    span = scene.motion_span_ns()
+    moving = duration if options.moving_views else (
+        0 if span is None else max(0, min(span[1], scene.end_ns) - max(span[0], scene.start_ns)))
+    steps = moving // options.min_step_ns + 1
+    if steps > MAX_RENDERS_PER_VIEW:
+        raise InputError(f"simulate: --min-step {options.min_step_ns} ns over {moving / 1e9:g} s "
+                         f"of motion plans up to {steps} renders per view (at most "
+                         f"{MAX_RENDERS_PER_VIEW}); raise --min-step")
+    frames, _ = _frame_count(scene, options.frame_rate_hz)
+    if frames * options.blur_samples > MAX_RENDERS_PER_VIEW:
+        raise InputError(f"simulate: --frame-rate {options.frame_rate_hz:g} with --blur-samples "
+                         f"{options.blur_samples} over {duration / 1e9:g} s plans "
+                         f"{frames * options.blur_samples} renders per view (at most "
+                         f"{MAX_RENDERS_PER_VIEW}); lower --frame-rate or --blur-samples "
+                         "(--frame-rate 0 writes no frames)")
+    w, h, s = camera.width, camera.height, options.supersample
+    rays = (w * s) * (h * s)
+    n_views = _n_views(scene, options)
+    poses = duration // MOVING_POSE_PERIOD_NS + 2
+    parts = [
+        (rays * RENDER_BYTES_PER_RAY + w * h * GENERATOR_BYTES_PER_PIXEL,
+         f"--resolution {w} {h} with --supersample {s} ({rays} rays per render)",
+         "lower --resolution or --supersample"),
+        (frames * w * h * 4, f"--frame-rate {options.frame_rate_hz:g} ({frames} blurred "
+                             f"{w}x{h} frames per view)",
+         "lower --frame-rate or --resolution (--frame-rate 0 writes no frames)"),
+        (options.gt_times * w * h * 18, f"--gt-times {options.gt_times} (ground truth of "
+                                        f"{w}x{h} per view)", "lower --gt-times or --resolution"),
+        (min(options.moving_views, 1) * poses * 400,
+         f"--moving-views over a {duration / 1e9:g} s scene ({poses} poses at 1 kHz per view)",
+         "shorten the scene's time span or drop --moving-views"),
+    ]
+    workers = _workers(options, n_views)
+    total = sum(b for b, _, _ in parts) * workers + options.moving_views * poses * 400
+    _, what, fix = max(parts, key=lambda part: part[0])
+    check_memory(total, f"simulate: {what} x {workers} parallel view(s)",
+                 f"{fix}, or lower --jobs")
 
 
 def _view_tasks(scene: Scene, options: SimulationOptions) -> list[ViewTask]:
@@ -215,8 +330,7 @@ def _pose_function(task: ViewTask, track):
 
 
 def _run_views(scene, camera, tasks, options, out: Path, log) -> list[ViewResult]:
-    jobs = options.jobs or (os.cpu_count() or 1)
-    jobs = max(1, min(jobs, len(tasks)))
+    jobs = _workers(options, len(tasks))
     bar = _progress(len(tasks))
     results = []
     try:
@@ -225,20 +339,85 @@ def _run_views(scene, camera, tasks, options, out: Path, log) -> list[ViewResult
                 results.append(_simulate_view(scene, camera, task, options, out))
                 _report(bar, log, results[-1])
         else:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
-                futures = [pool.submit(_simulate_view, scene, camera, t, options, out) for t in tasks]
+            pool = ProcessPoolExecutor(max_workers=jobs, initializer=_worker_init,
+                                       initargs=(os.getpid(),))
+            try:
+                futures = [pool.submit(_simulate_view, scene, camera, t, options, out)
+                           for t in tasks]
                 for fut in futures:
                     results.append(fut.result())
                     _report(bar, log, results[-1])
+            except BaseException:
+                # Ctrl-C, SIGTERM (the CLI raises KeyboardInterrupt for it) or a failed view:
+                # no worker may go on writing into the output that is about to be removed.
+                _stop_pool(pool)
+                raise
+            pool.shutdown(wait=True)
     finally:
         if bar is not None:
             bar.close()
     return results
 
 
-def _progress(n):
-    import sys
+def _worker_init(parent_pid: int) -> None:
+    """In each worker: die with the parent, and leave signals to the parent.
 
+    SIGINT from a terminal reaches the whole process group; the parent stops the workers
+    itself, so a worker ignores it (no traceback per worker). SIGTERM gets its default
+    action back (the parent's handler was inherited through fork). If the parent is
+    SIGKILLed, Linux delivers SIGKILL to the worker (PR_SET_PDEATHSIG); elsewhere a thread
+    watches the parent's pid.
+    """
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if not _set_parent_death_signal(signal.SIGKILL):
+        import threading
+
+        threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True).start()
+    if os.getppid() != parent_pid:        # the parent died before the signal was armed
+        os._exit(1)
+
+
+def _set_parent_death_signal(sig: int) -> bool:
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        PR_SET_PDEATHSIG = 1
+        return libc.prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _watch_parent(parent_pid: int) -> None:
+    while os.getppid() == parent_pid:
+        time.sleep(0.5)
+    os._exit(1)
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """End the worker processes, then the executor (its pending futures fail as broken;
+    cancelling them first would race with the executor's own thread)."""
+    # The executor has no public handle on its processes before Python 3.14.
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    if not procs and hasattr(pool, "terminate_workers"):
+        pool.terminate_workers()
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    for p in procs:
+        p.join(timeout=5)
+        if p.is_alive():
+            p.kill()
+            p.join(timeout=5)
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _progress(n):
     if not sys.stderr.isatty():
         return None
     from tqdm import tqdm
@@ -284,10 +463,11 @@ def _simulate_view(scene: Scene, camera: PinholeCamera, task: ViewTask,
     if m1 > m0:
         if m0 > start:                       # static lead-in: one render stands for it
             chunks.append(gen.step_log(gen.last_log(), m0))
+        travel = image_travel(scene, camera, pose_at, m0, m1, options.min_step_ns)
         ev, st = simulate_renderer(lambda t: renderer(pose_at(t), t), m0, m1, gen, mode="adaptive",
                                    tolerance_c=options.tolerance_c,
                                    min_step_ns=options.min_step_ns,
-                                   max_step_ns=options.max_step_ns)
+                                   max_step_ns=options.max_step_ns, travel_px=travel)
         chunks.append(ev)
         renders += st.renders
         stats = {k: v for k, v in asdict(st).items() if k not in ("mode",)}
@@ -356,11 +536,8 @@ def _K(camera: PinholeCamera) -> np.ndarray:
 
 def _write_frames(renderer, pose_at, scene, motion, task, options, path) -> int:
     """Motion-blurred frames: the mean of `blur_samples` renders over each exposure."""
-    if options.frame_rate_hz == 0:
-        return 0
     start, end = scene.start_ns, scene.end_ns
-    period = int(round(1e9 / options.frame_rate_hz))
-    n = (end - start) // period
+    n, period = _frame_count(scene, options.frame_rate_hz)
     if n < 1:
         return 0
     m0, m1 = motion

@@ -12,18 +12,30 @@ strictly increasing.
   exact sRGB curve has a short linear toe below v = 10; the two differ by under 1 % of
   white). Black (v = 0) maps to I = 0, which the log's eps handles.
 * Other integer types are refused: store linear float intensity.
+* The file is checked before anything is allocated: each array's declared shape and dtype
+  (its .npy header) must fit the bytes the archive holds and the memory budget; a
+  corrupt, truncated or bit-flipped archive is one error naming the file.
+
+Generator options and their ranges (the CLI flags): --c-pos / --c-neg in [0.01, 10],
+--eps in (0, 1], --sigma / --interval-sigma in [0, 1], --refractory-ns in [0, 1e10],
+--seed in [0, 2**63 - 1].
 """
 
 from __future__ import annotations
 
-import zipfile
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError, OutputExistsError
-from .generator import EventGenerator
+from ..limits import check_memory, check_number
+from .generator import _MAX_INTERVAL_NS, _MAX_SIDE, EventGenerator
 from .logmap import LOG_EPS, check_intensity
+from .noise import MIN_THRESHOLD
+
+#: Frame times lie within +-2**62 ns (146 years), so every difference fits in int64.
+MAX_ABS_TIME_NS = 1 << 62
+
 
 #: Exponent of the 8-bit linearisation (sRGB-style display gamma).
 GAMMA_8BIT = 2.2
@@ -43,12 +55,20 @@ def check_times(t, n_frames: int, *, source: str) -> np.ndarray:
     if t.shape != (n_frames,):
         raise InputError(f"{source}: t has shape {t.shape}, expected ({n_frames},) - one time "
                          "per frame")
+    if t.size and (int(t.min()) < -MAX_ABS_TIME_NS or int(t.max()) > MAX_ABS_TIME_NS):
+        raise InputError(f"{source}: frame times must lie within +-2**62 ns (146 years); got "
+                         f"{int(t.min())} .. {int(t.max())} ns")
     t = t.astype(np.int64)
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
         i = int(back[0]) + 1
         raise InputError(f"{source}: frame {i} time {t[i]} ns is not after frame {i - 1}'s "
                          f"{t[i - 1]} ns; frame times must increase strictly")
+    gap = np.flatnonzero(np.diff(t) > _MAX_INTERVAL_NS)
+    if gap.size:
+        i = int(gap[0]) + 1
+        raise InputError(f"{source}: frame {i} comes {t[i] - t[i - 1]} ns after frame {i - 1}; "
+                         "frames may be at most 2**53 ns (104 days) apart")
     return t
 
 
@@ -62,6 +82,9 @@ def check_frames(frames, t, *, source: str = "frames", gamma_8bit: bool = False)
     if n == 0 or h == 0 or w == 0:
         raise InputError(f"{source}: frames have shape {frames.shape}; need at least one frame "
                          "of at least 1x1 pixels")
+    if h > _MAX_SIDE or w > _MAX_SIDE:
+        raise InputError(f"{source}: frames are {w}x{h} pixels; event coordinates allow at "
+                         f"most {_MAX_SIDE} per side")
     t = check_times(t, n, source=source)
     kind = frames.dtype.kind
     if kind in "iub":
@@ -86,26 +109,10 @@ def check_frames(frames, t, *, source: str = "frames", gamma_8bit: bool = False)
 
 def load_frames_npz(path, *, gamma_8bit: bool = False):
     """Read FRAMES.npz -> (frames (N, H, W) float linear intensity, t (N,) int64 ns)."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: no such file")
-    try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
-        raise InputError(f"{path}: not a readable .npz file ({exc})") from exc
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise InputError(f"{path}: is a single .npy array, not an .npz with arrays frames and t")
-    with data:
-        missing = [k for k in ("frames", "t") if k not in data.files]
-        if missing:
-            raise InputError(f"{path}: missing arrays {missing}; FRAMES.npz holds frames (N, H, W) "
-                             "linear intensity and t (N,) int64 ns (has: "
-                             f"{', '.join(data.files) or 'nothing'})")
-        try:
-            frames, t = data["frames"], data["t"]
-        except ValueError as exc:  # object arrays need pickle, which we refuse
-            raise InputError(f"{path}: cannot read arrays ({exc})") from exc
-    return check_frames(frames, t, source=str(path), gamma_8bit=gamma_8bit)
+    from ..io.npz import load_npz
+
+    arrays = load_npz(path, ("frames", "t"), what="FRAMES.npz (frames (N, H, W) linear intensity, t (N,) int64 ns)")
+    return check_frames(arrays["frames"], arrays["t"], source=str(path), gamma_8bit=gamma_8bit)
 
 
 def video_to_events(frames, t, **generator_options) -> np.ndarray:
@@ -132,6 +139,14 @@ def run_video2events(frames_path, out_path, *, c_pos: float = 0.2, c_neg: float 
     from ..events.types import empty_triggers
     from ..io.event_files import EventFile, container_kind, write_event_file
 
+    c_pos = check_number(c_pos, "--c-pos", low=MIN_THRESHOLD, high=10.0)
+    c_neg = check_number(c_neg, "--c-neg", low=MIN_THRESHOLD, high=10.0)
+    eps = check_number(eps, "--eps", low=0.0, high=1.0, low_open=True)
+    sigma = check_number(sigma, "--sigma", low=0.0, high=1.0)
+    interval_sigma = check_number(interval_sigma, "--interval-sigma", low=0.0, high=1.0)
+    refractory_ns = check_number(refractory_ns, "--refractory-ns", low=0, high=10_000_000_000,
+                                 integer=True)
+    seed = check_number(seed, "--seed", low=0, high=2**63 - 1, integer=True)
     out_path = Path(out_path)
     kind = container_kind(out_path)           # unknown suffix: fail before any work
     if out_path.exists():
