@@ -116,20 +116,30 @@ def h5_memory(nbytes: int, path, what: str) -> None:
                  "or needs a machine with more memory")
 
 
+_MISSING = object()
+
+
+def _h5_attr(attrs, key: str, path, required: bool):
+    """The raw attribute, or _MISSING when it is absent and not required."""
+    try:
+        if key not in attrs:
+            if required:
+                raise FormatError(f"attribute {key!r} is missing; {DAMAGED_HINT}", source=str(path))
+            return _MISSING
+        return attrs[key]
+    except H5_ERRORS as exc:
+        raise FormatError(f"attribute {key!r} cannot be read ({_short(exc)})", source=str(path)) from None
+
+
 def h5_number(attrs, key: str, path, *, required: bool = True, default=None, **limits):
     """A numeric HDF5 attribute, checked with check_number (a one-element array counts as
     its element); InputError naming the file and the attribute."""
     import numpy as np
 
     name = f"{path}: attribute {key}"
-    try:
-        if key not in attrs:
-            if required:
-                raise FormatError(f"attribute {key!r} is missing; {DAMAGED_HINT}", source=str(path))
-            return default
-        value = attrs[key]
-    except H5_ERRORS as exc:
-        raise FormatError(f"attribute {key!r} cannot be read ({_short(exc)})", source=str(path)) from None
+    value = _h5_attr(attrs, key, path, required)
+    if value is _MISSING:
+        return default
     if isinstance(value, np.ndarray):
         if value.size != 1:
             raise FormatError(f"attribute {key!r} has shape {value.shape}, expected one number",
@@ -142,14 +152,9 @@ def h5_number(attrs, key: str, path, *, required: bool = True, default=None, **l
 
 def h5_text(attrs, key: str, path, *, required: bool = True, default=None) -> str | None:
     """A string attribute (HDF5 stores them as str or bytes)."""
-    try:
-        if key not in attrs:
-            if required:
-                raise FormatError(f"attribute {key!r} is missing; {DAMAGED_HINT}", source=str(path))
-            return default
-        value = attrs[key]
-    except H5_ERRORS as exc:
-        raise FormatError(f"attribute {key!r} cannot be read ({_short(exc)})", source=str(path)) from None
+    value = _h5_attr(attrs, key, path, required)
+    if value is _MISSING:
+        return default
     if isinstance(value, bytes):
         try:
             value = value.decode("utf-8")
