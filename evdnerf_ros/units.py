@@ -6,6 +6,10 @@ from decimal import Decimal, InvalidOperation
 
 from .errors import InputError
 
+# Every time and duration the user types stays within this, so sums and differences of
+# two of them still fit int64.
+MAX_TIME_NS = 1 << 62
+
 _UNITS = {"ns": 1, "us": 1_000, "µs": 1_000, "ms": 1_000_000, "s": 1_000_000_000}
 
 
@@ -24,6 +28,9 @@ def parse_duration_ns(text: str, *, name: str = "time") -> int:
                          "150us or 1000ns") from None
     if not value.is_finite():
         raise InputError(f"{name}: {text!r} is not a finite time")
+    if abs(value) > MAX_TIME_NS:
+        raise InputError(f"{name}: {text!r} is beyond +-2**62 ns (146 years); int64 nanosecond "
+                         "times must stay far from overflow")
     if value != value.to_integral_value():
         raise InputError(f"{name}: {text!r} is not a whole number of nanoseconds")
     return int(value)
