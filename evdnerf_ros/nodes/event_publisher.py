@@ -28,19 +28,21 @@ from ..ros.node import Node
 from ..ros.parameters import ParameterSpec as P
 
 NS = 1_000_000_000
+MAX_SECONDS = 4e9          # ~127 years: every time parameter stays well inside int64 nanoseconds
 
 PARAMETERS = [
     P("scene", "fork", "synthetic scene: a preset name (fork, jet-down, ...) or a scene YAML; unused with run_dir"),
     P("run_dir", "", "trained run folder (checkpoint.pt from `evdnerf train`); empty: render `scene`", read_only=True),
     P("field_duration", 0.0, "seconds of scene time the field's normalised time 0..1 spans (0: the "
-      "trajectory's span)", min=0.0),
-    P("scene_time_offset", 0.0, "scene time (s) at the trajectory's first pose"),
+      "trajectory's span)", min=0.0, max=MAX_SECONDS),
+    P("scene_time_offset", 0.0, "scene time (s) at the trajectory's first pose", min=-MAX_SECONDS, max=MAX_SECONDS),
     P("trajectory", "", "robot poses: a bag (nav_msgs/Odometry, PoseStamped or /tf), .yaml or .csv; empty: a "
       "static camera at the scene's first ring view for `duration` seconds"),
     P("trajectory_topic", "", "pose topic inside a trajectory bag (empty: the only pose topic)"),
     P("trajectory_child_frame", "base_link", "robot frame (child_frame_id) when reading /tf"),
-    P("trajectory_max_gap", 0.5, "largest gap (s) between poses that is interpolated", min=1e-6),
-    P("duration", 0.0, "seconds to publish (0: the whole trajectory, or the scene's duration)", min=0.0),
+    P("trajectory_max_gap", 0.5, "largest gap (s) between poses that is interpolated", min=1e-6, max=MAX_SECONDS),
+    P("duration", 0.0, "seconds to publish (0: the whole trajectory, or the scene's duration; else at least 1 ns)",
+      min=0.0, max=MAX_SECONDS),
     P("camera.xyz", [0.0, 0.0, 0.0], "camera position in the robot frame (m)"),
     P("camera.rpy_deg", [0.0, 0.0, 0.0], "camera orientation in the robot frame: roll, pitch, yaw (deg, fixed "
       "axes x, y, z); the camera frame is OpenCV (x right, y down, z forward)"),
@@ -68,17 +70,17 @@ PARAMETERS = [
     P("encoding", "evt3", "event message: evt3, evt2 or mono EventPacket, or array (dvs_msgs/EventArray)",
       choices=("evt3", "evt2", "mono", "array")),
     P("packet_ns", 1_000_000, "longest time span of one event message (ns)", min=1),
-    P("chunk", 0.01, "seconds of trajectory rendered and published per step", min=1e-6),
+    P("chunk", 0.01, "seconds of trajectory rendered and published per step", min=1e-6, max=MAX_SECONDS),
     P("realtime_factor", 1.0, "1: real time; 2: twice as fast; 0: as fast as possible", min=0.0),
     P("frame_id", "event_camera", "header.frame_id of events and camera info"),
     P("qos", "default", "QoS profile of the published topics (default = reliable, keep-last 10; sensor_data = "
       "best effort)", choices=("default", "sensor_data", "transient_local")),
     P("camera_info_period", 1.0, "seconds of trajectory time between CameraInfo messages (also sent at once "
-      "when a new subscriber appears)", min=1e-3),
+      "when a new subscriber appears)", min=1e-3, max=MAX_SECONDS),
     P("bag", "", "also record into this rosbag2 (must not exist); empty: no bag", read_only=True),
     P("bag_storage", "mcap", "rosbag2 storage of the bag", choices=("mcap", "sqlite3"), read_only=True),
     P("wait_for_subscribers", 0, "wait until this many subscribers match ~/events before starting", min=0),
-    P("wait_timeout", 10.0, "seconds to wait for subscribers", min=0.0),
+    P("wait_timeout", 10.0, "seconds to wait for subscribers", min=0.0, max=MAX_SECONDS),
 ]
 
 
@@ -165,6 +167,9 @@ class EventPublisher(Node):
 
         p = self.params
         dur = int(round(p["duration"] * NS))
+        if p["duration"] > 0 and dur == 0:
+            raise InputError(f"duration {p['duration']} s is less than 1 ns; give 0 for the whole trajectory "
+                             "or at least 1e-9 s")
         if p["trajectory"]:
             t, T = load_poses(p["trajectory"], topic=p["trajectory_topic"] or None,
                               child_frame=p["trajectory_child_frame"])
@@ -300,7 +305,9 @@ def usage() -> str:
              "Publishes ~/events and ~/camera_info (DDS domain ROS_DOMAIN_ID; ROS_LOCALHOST_ONLY=1 for loopback).",
              "", "parameters:"]
     for spec in PARAMETERS:
-        lines.append(f"  {spec.name} ({spec.type_name()}, default {spec.default!r}): {spec.description}")
+        rng = "" if spec.min is None and spec.max is None else \
+            f", range [{'' if spec.min is None else f'{spec.min:g}'}, {'' if spec.max is None else f'{spec.max:g}'}]"
+        lines.append(f"  {spec.name} ({spec.type_name()}, default {spec.default!r}{rng}): {spec.description}")
     return "\n".join(lines)
 
 
