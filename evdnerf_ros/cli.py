@@ -501,8 +501,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--depth", type=number(int, low=1, high=1_000_000), default=1000,
                    help="subscriber history (keep-last) depth; deep so a slow start loses nothing (default %(default)s)")
     p.add_argument("--count", type=number(int, low=0), default=0, help="stop after this many messages (0: no limit)")
-    p.add_argument("--duration", type=number(float, low=0), default=0.0, help="stop after this many seconds (0: no limit)")
-    p.add_argument("--idle", type=number(float, low=0), default=0.0,
+    p.add_argument("--duration", type=number(float, low=0, high=4e9), default=0.0, help="stop after this many seconds (0: no limit)")
+    p.add_argument("--idle", type=number(float, low=0, high=4e9), default=0.0,
                    help="stop when nothing arrives for this many seconds, counted from the start "
                         "until the first message (0: no limit)")
     p.add_argument("--png", help="write the event image of everything received")
