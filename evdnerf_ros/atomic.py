@@ -10,7 +10,9 @@ never leaves a half-written file or bag directory behind. The rules it keeps:
   folder, and a folder we did not make is never deleted.
 - The temporary sibling is ``.<name>.<pid>.<random>.partial``. A job killed outright
   (SIGKILL, power loss) cannot remove it; the next job writing the same output finds it,
-  sees that its process is gone, removes it and says so on stderr.
+  sees that its process is gone, removes it and says so on stderr. The exception is a
+  killed recording whose bag already holds flushed messages: that is data, so it is kept
+  and the note says how to salvage it (`evdnerf salvage-bag`).
 - `check_output` runs the same checks up front, so a command can refuse a bad output path
   before it spends minutes (or a recording) on work that could not be saved.
 """
@@ -112,12 +114,25 @@ def remove_stale_partials(parent: Path, name: str) -> list[Path]:
         pid_text = n[len(prefix):].split(".", 1)[0]
         if not pid_text.isdigit() or _process_alive(int(pid_text)):
             continue
+        if _holds_recording(entry):
+            print(f"evdnerf: kept {entry}: the unfinished bag of a recording that was killed (process "
+                  f"{pid_text}); `evdnerf salvage-bag {entry} -o BAG` writes out its messages, then "
+                  "delete it", file=sys.stderr)
+            continue
         shutil.rmtree(entry, ignore_errors=True)
         if not entry.exists():
             removed.append(entry)
             print(f"evdnerf: removed {entry}, the unfinished output of an earlier run (process "
                   f"{pid_text}) that was killed", file=sys.stderr)
     return removed
+
+
+def _holds_recording(partial: Path) -> bool:
+    """A killed recording's flushed MCAP chunks are data, not debris: never delete them."""
+    try:
+        return any(f.stat().st_size > 64 for f in partial.rglob("*.mcap"))
+    except OSError:
+        return False
 
 
 def _process_alive(pid: int) -> bool:

@@ -35,6 +35,16 @@ def _cmd_convert_events(args) -> int:
     return 0
 
 
+def _cmd_salvage_bag(args) -> int:
+    from .io.mcap_salvage import salvage_bag
+
+    counts = salvage_bag(args.partial, args.output, storage=args.storage)
+    total = sum(counts.values())
+    print(f"{args.output}: {total} messages salvaged" +
+          "".join(f"\n  {topic}: {n}" for topic, n in counts.items()))
+    return 0
+
+
 def _cmd_info(args) -> int:
     from .io.info import describe
 
@@ -510,6 +520,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace existing --png / --save-events files")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_cmd_echo)
+
+    p = sub.add_parser("salvage-bag", help="write out the messages of a recording that was killed",
+                       description="A recording killed outright (SIGKILL, power loss) leaves its bag in a "
+                                   "hidden .BAG.<pid>.<id>.partial folder: an MCAP file without its summary, "
+                                   "which no reader opens. Recorders flush a chunk about once a second; this "
+                                   "reads every complete chunk and writes its messages into a new rosbag2.")
+    p.add_argument("partial", help="the .partial folder (or the .mcap file inside it)")
+    p.add_argument("-o", "--output", required=True, help="rosbag2 to write (must not exist)")
+    p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap",
+                   help="storage of the new bag (default %(default)s)")
+    p.set_defaults(func=_cmd_salvage_bag)
 
     p = sub.add_parser("info", help="summarise an event file or bag",
                        description="Print topics, message types and counts (bags), event count, "

@@ -530,3 +530,46 @@ def test_full_or_read_only_file_system(case, read_only, ws, tmp_path):
         assert left == ["run"], left
     else:
         assert left == [], left
+
+
+def _event_messages(bag: Path) -> list[tuple[int, bytes]]:
+    """(time, raw CDR) of the event topic, read by rosbags' own reader."""
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([bag]) as reader:
+        conns = [c for c in reader.connections if c.topic.endswith("/events")]
+        return [(t, bytes(raw)) for _, t, raw in reader.messages(connections=conns)]
+
+
+def test_sigkilled_recording_is_kept_and_salvaged(tmp_path):
+    """SIGKILL cannot be caught, but a recording flushes its chunks every second: the killed
+    bag's partial folder is kept (not cleaned) and `salvage-bag` writes out exactly the
+    messages an uninterrupted run starts with."""
+    publish = ["publish", "--resolution", "16", "16", "--duration", "1.0"]
+    proc = subprocess.Popen(EVDNERF + publish + ["-o", "b"], cwd=tmp_path, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline and not [f for f in tmp_path.glob(".b.*.partial/b/*.mcap")
+                                                if f.stat().st_size > 1024]:
+        time.sleep(0.05)
+    proc.kill()
+    proc.wait()
+    partial = next(tmp_path.glob(".b.*.partial"))
+    again = run(["publish", "-o", "b", "--resolution", "16", "16", "--duration", "0.01"], tmp_path)
+    assert again.returncode == 0 and partial.is_dir() and f"kept {partial.name}" in again.stderr
+    res = run(["salvage-bag", partial.name, "-o", "salvaged"], tmp_path)
+    assert res.returncode == 0, res.stderr
+    salvaged = _event_messages(tmp_path / "salvaged")
+    assert salvaged
+    full = run(publish + ["-o", "full"], tmp_path)
+    assert full.returncode == 0, full.stderr
+    reference = _event_messages(tmp_path / "full")
+    assert len(salvaged) < len(reference)
+    assert salvaged == reference[:len(salvaged)]
+
+
+def test_salvage_refuses_what_is_not_a_recording(tmp_path):
+    (tmp_path / "x.mcap").write_bytes(b"not an mcap at all")
+    res = run(["salvage-bag", "x.mcap", "-o", "out"], tmp_path)
+    assert_clean_failure(res, "x.mcap")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.mcap"]

@@ -475,6 +475,25 @@ class BagWriter(_EventBagWriter):
     def _add_connection(self, topic, msgtype):
         return self._writer.add_connection(topic, msgtype, typestore=self.typestore)
 
+    def flush(self) -> None:
+        """Put what was written so far on disk, so that a recording killed outright (SIGKILL,
+        power loss) keeps it: MCAP closes its pending chunk, sqlite3 commits. The bag is still
+        published under its name only by close(); a killed one's messages are salvaged with
+        :func:`evdnerf_ros.io.mcap_salvage.salvage_bag` (``evdnerf salvage-bag``)."""
+        self._check_open()
+        storage = self._writer.storage          # rosbags' storage writer (rosbags pinned < 0.12)
+        try:
+            if self.storage == "mcap":
+                if storage.chunk.bio.tell():
+                    storage.close_chunk()
+                storage.bio.flush()
+                os.fsync(storage.bio.fileno())
+            else:
+                storage.conn.commit()
+        except OSError as exc:
+            name_output_error(exc, self.path)
+            raise
+
     def write_camera_info(self, topic: str, width: int, height: int, K, D=(0.0, 0.0, 0.0, 0.0, 0.0), *,
                           stamp_ns: int, frame_id: str = "event_camera", **kwargs):
         """Write a ``sensor_msgs/msg/CameraInfo`` (see :func:`evdnerf_ros.io.messages.camera_info`)."""
