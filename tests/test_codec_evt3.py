@@ -450,3 +450,30 @@ def test_encoder_state_survives_a_rejected_chunk(monkeypatch):
         enc.encode(bad)
     rest = enc.encode(ev[500:])
     assert np.array_equal(decode(first + rest, "evt3").events, ev)
+
+
+# ---- time-word anomalies real cameras write (../shared/data/real/README.md)
+
+def test_time_low_replaced_by_a_lower_one_before_any_event_is_tolerated_and_counted():
+    # a Gen4.1 writes TIME_LOW 811 and at once TIME_LOW 800: the latest wins (OpenEB, event_camera_codecs)
+    decoder = make_decoder("evt3")
+    d = decoder.feed(words(TH(0), Y(0), TL(700), X(0, 1), TL(811), TL(800), X(1, 1), TL(900), X(2, 1)))
+    assert list(d.events["t"] // 1000) == [700, 800, 900]
+    assert decoder.time_anomalies == {"time_low_back": 1, "time_high_back": 0}
+
+
+def test_time_high_stepping_back_a_few_units_is_tolerated_and_counted():
+    decoder = make_decoder("evt3")
+    d = decoder.feed(words(TH(100), TL(5), Y(0), X(0, 1), TH(97), TH(100), TL(9), X(1, 1)))
+    assert list(d.events["t"] // 1000) == [100 * 4096 + 5, 100 * 4096 + 9]
+    assert decoder.time_anomalies["time_high_back"] == 1
+
+
+def test_time_high_step_back_that_moves_an_event_back_raises():
+    with pytest.raises(FormatError, match="backwards"):
+        dec(TH(100), TL(5), Y(0), X(0, 1), TH(97), X(1, 1))
+
+
+def test_time_high_dropping_more_than_ten_units_without_a_wrap_raises():
+    with pytest.raises(FormatError, match="TIME_HIGH word"):
+        dec(TH(100), TL(5), Y(0), X(0, 1), TH(89), TL(0), X(1, 1))

@@ -61,7 +61,8 @@ def test_peer_evt2_writer_to_our_reader(tmp_path, kind):
     p = tmp_path / "peer.raw"
     peer_write(p, ev, "evt2")
     d, h = read_raw(p)
-    assert h.encoding == "evt2" and h.width is None
+    # no geometry line: the size comes from plugin_name (hal_plugin_gen3_fx3), as OpenEB infers it
+    assert h.encoding == "evt2" and (h.width, h.height) == (640, 480)
     assert np.array_equal(d.events, ev)
 
 

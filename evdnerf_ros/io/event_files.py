@@ -11,7 +11,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,7 @@ class EventFile:
     kind: str  # container kind: raw, npz, h5, rosbag1, rosbag2
     encoding: str | None = None
     topic: str | None = None
+    anomalies: dict = field(default_factory=dict)   # tolerated time-word anomalies (RAW EVT 3.0)
 
 
 def container_kind(path) -> str:
@@ -80,7 +81,8 @@ def read_event_file(path, *, topic: str | None = None, need_geometry: bool = Tru
             raise FormatError(f"event {i} at x={int(ev['x'][i])}, y={int(ev['y'][i])} lies outside the "
                               f"header's {header.width}x{header.height} geometry; the file is damaged or its "
                               "header is wrong", source=str(path))
-        return EventFile(ev, decoded.triggers, header.width, header.height, kind, header.encoding)
+        return EventFile(ev, decoded.triggers, header.width, header.height, kind, header.encoding,
+                         anomalies=decoded.anomalies)
     if kind == "npz":
         from .npz import read_npz
 

@@ -47,6 +47,7 @@ def describe(path, *, topic: str | None = None) -> dict:
         "t_last_ns": int(ev["t"][-1]) if n else None,
         "duration_ns": duration,
         "mean_rate_ev_per_s": (n - 1) / (duration * 1e-9) if duration > 0 else None,
+        "time_anomalies": {k: v for k, v in data.anomalies.items() if v},
     }
     return info
 
@@ -71,4 +72,8 @@ def format_info(info: dict) -> str:
                          f"{format_ns(ev['t_last_ns'])} (duration {format_ns(ev['duration_ns'])})")
         if ev["mean_rate_ev_per_s"]:
             lines.append(f"    mean rate   {ev['mean_rate_ev_per_s'] / 1e6:.3f} Mev/s")
+        if ev.get("time_anomalies"):
+            lines.append("    tolerated   " + ", ".join(f"{n} {k.replace('_', ' ')}"
+                                                      for k, n in ev["time_anomalies"].items())
+                         + " (time words real sensors write; no event went backwards)")
     return "\n".join(lines)

@@ -8,7 +8,9 @@
 Header: lines starting with "% " (or a bare "%") before the binary data; it ends after a
 "% end" line or at the first line that does not start that way. The encoding comes from
 `% format EVT3;height=720;width=1280` or from the older `% evt 3.0` / `% evt 2.0` lines; the
-geometry from the format line's width/height or from `% geometry 1280x720`. Event times in a
+geometry from the format line's width/height or from `% geometry 1280x720`, else (files
+before 2021) from `% plugin_name` as OpenEB infers it (gen3 / gen31: 640x480, gen41 / imx636:
+1280x720, imx8: 320x320). Event times in a
 RAW file are sensor microseconds: t_ns = 1000 * us.
 """
 
@@ -169,6 +171,8 @@ def _interpret(fields: dict[str, str], header_bytes: int, source: str) -> RawHea
                           "'% format EVT3;height=720;width=1280' (or '% evt 3.0') before the data",
                           source=source)
     geom = _lookup(fields, "geometry")
+    if geom is None and (width is None or height is None):
+        geom = _plugin_geometry(_lookup(fields, "plugin_name"))
     if geom is not None and (width is None or height is None):
         w, sep, h = geom.lower().partition("x")
         if not sep:
@@ -176,6 +180,17 @@ def _interpret(fields: dict[str, str], header_bytes: int, source: str) -> RawHea
         width = _positive_int(w, "geometry width", source) if width is None else width
         height = _positive_int(h, "geometry height", source) if height is None else height
     return RawHeader(encoding, width, height, dict(fields), header_bytes)
+
+
+# Pre-2021 RAW files have no geometry line; OpenEB infers the sensor size from the HAL
+# plugin's name. Checked in this order: the more specific names first.
+_PLUGIN_GEOMETRY = (("gen41", "1280x720"), ("imx636", "1280x720"), ("gen31", "640x480"),
+                    ("gen3", "640x480"), ("imx8", "320x320"))
+
+
+def _plugin_geometry(plugin_name) -> str | None:
+    name = str(plugin_name or "").lower()
+    return next((geom for key, geom in _PLUGIN_GEOMETRY if key in name), None)
 
 
 def read_raw_header(path) -> RawHeader:
@@ -283,7 +298,7 @@ def read_raw(path, *, chunk_bytes: int = 64 << 20, time_low_carry: bool = False
     dec.close()
     if pos < total:
         out = out[:pos].copy() if pos < total // 2 else out[:pos]
-    return Decoded(out, concat_triggers(trigs)), header
+    return Decoded(out, concat_triggers(trigs), getattr(dec, "time_anomalies", {})), header
 
 
 def iter_raw(path, *, chunk_bytes: int = 16 << 20, time_low_carry: bool = False

@@ -34,6 +34,8 @@ class Decoded:
 
     events: np.ndarray = field(default_factory=lambda: np.empty(0, EVENT_DTYPE))
     triggers: np.ndarray = field(default_factory=lambda: np.empty(0, TRIGGER_DTYPE))
+    # harmless time-word anomalies the decoder tolerated, by kind (EVT 3.0: see evt3.py)
+    anomalies: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.events.shape[0])

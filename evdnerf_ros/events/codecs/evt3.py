@@ -12,9 +12,12 @@
 
 Time is 24 bits of microseconds and wraps every 2**24 us; the decoder counts wraps (a
 TIME_HIGH that drops by more than half its range) and rejects time going backwards: a
-TIME_HIGH that drops by less, a TIME_LOW below the previous one with no TIME_HIGH in
-between, or a time word that gives the following event words an earlier time than earlier
-event words got.
+TIME_HIGH that drops by more than 10 units without a wrap, or a time word that gives the
+following event words an earlier time than earlier event words got. Real cameras write two
+harmless anomalies, decoded as OpenEB and event_camera_codecs do and counted
+(`time_anomalies`): a TIME_LOW at once replaced by a lower one with no event between (a
+Gen4.1 does it about once per ms; the latest wins), and a TIME_HIGH stepping back by a few
+units without a wrap.
 
 Decoding and encoding are numba kernels (see _common.kernel), one pass over the words or
 events of a chunk each; the decoder's state (time, row, vector base, last times) lives in a
@@ -37,6 +40,9 @@ NAME = "EVT 3.0"
 _INVALID_T = np.iinfo(np.int64).min      # ns time meaning "no valid time yet"
 _MAX_I64 = np.iinfo(np.int64).max
 _HALF = 2048                             # half the TIME_HIGH range (12 bits)
+# A TIME_HIGH this many units (of 4096 us) below the previous one is a sensor glitch that real
+# cameras write, not a wrap and not corruption (event_camera_codecs tolerates the same).
+_HIGH_STEP_BACK = 10
 _FILL_SPACING = 1024                     # encoder: at most 2**22 us between TIME_HIGH words
 
 # decoder state slots (an int64 array the decoder keeps between feeds)
@@ -48,7 +54,9 @@ _S_LAST_EV = 4     # ns time of the last event word with a valid time (order che
 _S_LAST_TR = 5     # ns time of the last trigger decoded
 _S_BASE = 6        # time_base_ns
 _S_CARRY = 7       # time_low_carry (0 / 1)
-_N_STATE = 8
+_S_LOW_BACK = 8    # TIME_LOW words below the previous low bits with no TIME_HIGH between (count)
+_S_HIGH_BACK = 9   # TIME_HIGH words a few units below the previous one, not a wrap (count)
+_N_STATE = 10
 
 # kernel report slots
 _R_ERR = 0         # error code (_E_*), 0 = none
@@ -60,8 +68,8 @@ _R_DROP_TR = 5     # triggers dropped for lack of a valid time
 _R_TIME_WORD = 6   # index of the chunk's last time word (-1: none)
 _N_REPORT = 7
 
-_E_HIGH_BACK = 1   # TIME_HIGH drops by at most half its range: A = new, B = previous bits
-_E_LOW_BACK = 2    # TIME_LOW below the previous low bits: A = new, B = previous
+_E_HIGH_BACK = 1   # TIME_HIGH drops by more than _HIGH_STEP_BACK, less than a wrap: A = new, B = previous
+# (2 was TIME_LOW going back; that is tolerated now and only counted: _S_LOW_BACK)
 _E_OVERFLOW = 3    # time beyond MAX_SENSOR_US
 _E_EVENT_BACK = 4  # event words get an earlier time than before: A = time, B = previous (ns)
 _E_TRIG_BACK = 5   # trigger earlier than the previous trigger: A = time, B = previous (ns)
@@ -100,6 +108,12 @@ class Evt3Decoder(StreamDecoderBase):
         self._state = st
         self._time_off = None        # byte offset of the word that set the current time
 
+    @property
+    def time_anomalies(self) -> dict[str, int]:
+        """Counts of the harmless time-word anomalies real cameras write (module doc)."""
+        return {"time_low_back": int(self._state[_S_LOW_BACK]),
+                "time_high_back": int(self._state[_S_HIGH_BACK])}
+
     def _count(self, words) -> int:
         return int(_count_events(readonly(words)))
 
@@ -121,11 +135,6 @@ class Evt3Decoder(StreamDecoderBase):
             msg = (f"TIME_HIGH word 0x{word:04x} sets time bits 23-12 to {a} after {b}: "
                    "time goes backwards (a drop of at most half the 12-bit range is not a 24-bit "
                    "wrap-around); the stream is corrupt or not EVT 3.0")
-        elif code == _E_LOW_BACK:
-            msg = (f"TIME_LOW word 0x{word:04x} sets time bits 11-0 to {a} after {b} with no "
-                   "TIME_HIGH in between: time goes backwards; the stream is corrupt or not EVT 3.0 "
-                   "(expelliarmus writes EVT 3.0 files without TIME_HIGH words: read those with "
-                   "time_low_carry=True)")
         elif code == _E_OVERFLOW:
             msg = (f"time passes {MAX_SENSOR_US} us after so many TIME_HIGH wrap-arounds "
                    "that nanoseconds overflow; the stream is corrupt")
@@ -139,6 +148,9 @@ class Evt3Decoder(StreamDecoderBase):
             msg = (f"{what} gives the following events time {(a - base) // 1000} us, before earlier "
                    f"events at {(b - base) // 1000} us: time goes backwards (a TIME_HIGH that "
                    "repeats its value resets the low time bits); the stream is corrupt or not EVT 3.0")
+            if wi >= 0 and word >> 12 == 6 and not self.time_low_carry:
+                msg += ("; expelliarmus writes EVT 3.0 files without TIME_HIGH words: read those with "
+                        "time_low_carry=True")
         elif code == _E_TRIG_BACK:
             msg = (f"EXT_TRIGGER word 0x{word:04x} gets time {a} ns, before the previous trigger "
                    f"at {b} ns; the time went backwards")
@@ -265,10 +277,13 @@ def _decode(w, start, out, k, trig, st, rep):
                 lo = v & 0xFFF
                 prev_lo = time & 0xFFF
                 if lo < prev_lo:
-                    if not carry:
-                        err, at, ea, eb = _E_LOW_BACK, i - 1, lo, prev_lo
-                        break
-                    time += 4096
+                    if carry:
+                        time += 4096
+                    else:
+                        # Real Gen4.1 sensors write a TIME_LOW and at once a lower one (about
+                        # once per ms): the latest wins, as in OpenEB and event_camera_codecs;
+                        # only an event whose time goes backwards is an error (checked there).
+                        st[_S_LOW_BACK] += 1
                 time = (time & ~0xFFF) | lo
                 if time > MAX_SENSOR_US:
                     err, at = _E_OVERFLOW, i - 1
@@ -283,9 +298,11 @@ def _decode(w, start, out, k, trig, st, rep):
                 d = prev_hv - hv
                 if d > _HALF:
                     high += 4096                         # 24-bit wrap-around
-                elif d > 0:
+                elif d > _HIGH_STEP_BACK:
                     err, at, ea, eb = _E_HIGH_BACK, i - 1, hv, prev_hv
                     break
+                elif d > 0:
+                    st[_S_HIGH_BACK] += 1                # a small step back: events decide
                 time = ((high & ~0xFFF) | hv) << 12
             else:
                 time = hv << 12
