@@ -19,12 +19,28 @@ from . import __version__
 from .errors import EvdnerfError
 
 TOPIC_HELP = "event topic inside a bag (default /event_camera/events)"
+GEOMETRY_HELP = ("sensor size WxH of a RAW file whose header gives none (neither a geometry line nor a "
+                 "known plugin_name), e.g. 640x480")
+
+
+def geometry(text: str) -> tuple[int, int]:
+    """argparse type of --geometry WxH."""
+    from .limits import check_number
+
+    w, sep, h = str(text).lower().partition("x")
+    try:
+        if not sep:
+            raise ValueError("no 'x' between width and height")
+        return (check_number(int(w), "width", low=1, high=65535),
+                check_number(int(h), "height", low=1, high=65535))
+    except (ValueError, EvdnerfError) as exc:
+        raise argparse.ArgumentTypeError(f"expected WxH such as 640x480, got {text!r} ({exc})") from None
 
 
 def _cmd_convert_events(args) -> int:
     from .io.event_files import container_kind, read_event_file, write_event_file
 
-    data = read_event_file(args.input, topic=args.topic)
+    data = read_event_file(args.input, topic=args.topic, geometry=args.geometry)
     out_topic = args.out_topic
     if out_topic is None and container_kind(args.output) in ("rosbag1", "rosbag2"):
         out_topic = args.topic  # keep the input's topic name when writing a bag
@@ -77,7 +93,7 @@ def _cmd_render_events(args) -> int:
     # Outputs are checked before the input is read: nothing is decoded for an unwritable path.
     for path in (output, rate_path) if args.rate else (output,):
         check_output(path, overwrite=args.overwrite)
-    data = read_event_file(args.input, topic=args.topic)
+    data = read_event_file(args.input, topic=args.topic, geometry=args.geometry)
     ev = data.events
     if ev.size == 0:
         raise EvdnerfError(f"{args.input}: holds no events; nothing to render")
@@ -281,6 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(EventPacket) or array (dvs_msgs/EventArray) for bags (default evt3; "
                         "array for ROS 1)")
     p.add_argument("--topic", help=TOPIC_HELP)
+    p.add_argument("--geometry", type=geometry, metavar="WxH", help=GEOMETRY_HELP)
     p.add_argument("--out-topic", help="topic in the output bag (default: same as --topic)")
     p.add_argument("--storage", choices=["mcap", "sqlite3"],
                    help="rosbag2 storage plugin for a directory output (default mcap)")
@@ -558,6 +575,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also plot the event rate of the whole recording (<output>_rate.png)")
     p.add_argument("--rate-bin", default="1ms", help="rate histogram bin (default %(default)s)")
     p.add_argument("--topic", help=TOPIC_HELP)
+    p.add_argument("--geometry", type=geometry, metavar="WxH", help=GEOMETRY_HELP)
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing PNG files at the output paths (never a folder)")
     p.set_defaults(func=_cmd_render_events)

@@ -193,3 +193,25 @@ def test_evt2_file_roundtrip_through_encode(tmp_path):
     p = put(tmp_path, "e2.raw", b"% evt 2.0\n% geometry 1280x720\n% end\n" + encode(ev, "evt2"))
     d, h = read_raw(p)
     assert h.encoding == "evt2" and np.array_equal(d.events, ev)
+
+
+def test_raw_without_geometry_takes_the_geometry_flag(tmp_path, capsys):
+    """A RAW header with neither a geometry line nor a known plugin_name: refused in one line
+    naming --geometry, read with --geometry WxH; events outside it are an error."""
+    import re
+
+    from evdnerf_ros.cli import main
+    from evdnerf_ros.events import make_events
+
+    ev = make_events(np.arange(5) * 1000, np.arange(5), np.arange(5), np.ones(5, np.int8))
+    write_raw(tmp_path / "g.raw", ev, width=8, height=8)
+    text = (tmp_path / "g.raw").read_bytes()
+    text = re.sub(rb"% geometry [^\n]*\n", b"", re.sub(rb"% format [^\n]*\n", b"% evt 3.0\n", text))
+    (tmp_path / "bare.raw").write_bytes(text)
+    assert main(["convert-events", str(tmp_path / "bare.raw"), str(tmp_path / "a.npz")]) == 2
+    assert "--geometry" in capsys.readouterr().err
+    assert main(["convert-events", str(tmp_path / "bare.raw"), str(tmp_path / "a.npz"), "--geometry", "8x8"]) == 0
+    assert main(["convert-events", str(tmp_path / "bare.raw"), str(tmp_path / "b.npz"), "--geometry", "4x4"]) == 2
+    assert "outside" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["convert-events", str(tmp_path / "bare.raw"), str(tmp_path / "c.npz"), "--geometry", "8"])

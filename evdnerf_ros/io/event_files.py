@@ -11,7 +11,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -55,9 +55,11 @@ def container_kind(path) -> str:
                      ".mcap, .db3 or a rosbag2 directory")
 
 
-def read_event_file(path, *, topic: str | None = None, need_geometry: bool = True) -> EventFile:
-    """Read any container (see the module doc). A RAW file whose header gives no geometry is
-    refused unless `need_geometry` is False (width / height are then None)."""
+def read_event_file(path, *, topic: str | None = None, need_geometry: bool = True,
+                    geometry: tuple[int, int] | None = None) -> EventFile:
+    """Read any container (see the module doc). A RAW file whose header gives no geometry (and
+    no plugin_name it follows from) takes `geometry` (W, H, the CLI's --geometry WxH); without
+    it, it is refused unless `need_geometry` is False (width / height are then None)."""
     path = Path(path)
     kind = container_kind(path)
     if not path.exists():
@@ -70,10 +72,13 @@ def read_event_file(path, *, topic: str | None = None, need_geometry: bool = Tru
         from .raw import read_raw, read_raw_header
 
         header = read_raw_header(path)          # refuse a header without geometry before decoding
-        if (header.width is None or header.height is None) and need_geometry:
-            raise FormatError("the RAW header gives no sensor geometry; add a header line "
-                              "'% geometry WIDTHxHEIGHT' (before '% end')", source=str(path))
+        if (header.width is None or header.height is None) and geometry is None and need_geometry:
+            raise FormatError("the RAW header gives no sensor geometry; give it with --geometry WxH "
+                              "(or add a header line '% geometry WIDTHxHEIGHT' before '% end')",
+                              source=str(path))
         decoded, header = read_raw(path)
+        if geometry is not None and (header.width is None or header.height is None):
+            header = replace(header, width=int(geometry[0]), height=int(geometry[1]))
         ev = decoded.events
         known = header.width is not None and header.height is not None
         if known and ev.size and (int(ev["x"].max()) >= header.width or int(ev["y"].max()) >= header.height):
