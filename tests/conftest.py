@@ -1,4 +1,5 @@
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -39,3 +40,25 @@ def tiny_train_h5(tmp_path_factory):
         supersample=2, jobs=1, min_step_ns=2_000_000), log=lambda *_: None)
     run_convert(tmp / "s", tmp / "t.h5", offsets="ground-truth", log=lambda *_: None)
     return tmp / "t.h5"
+
+
+def child_pids(pid: int) -> set[int]:
+    """Processes whose parent is `pid` (Linux /proc): the workers a signal test watches."""
+    kids = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            kids.add(int(stat.parent.name))
+    return kids
+
+
+def pid_alive(pid: int) -> bool:
+    """A process that still runs (zombies and dead ones do not)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")

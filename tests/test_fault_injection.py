@@ -27,6 +27,8 @@ from typing import Callable
 import numpy as np
 import pytest
 
+from conftest import child_pids, pid_alive
+
 EVDNERF = [sys.executable, "-m", "evdnerf_ros"]
 SENTINEL = "user data: must survive"
 
@@ -357,26 +359,6 @@ def test_full_disk_is_one_line_and_leaves_nothing(case, ws, tmp_path):
 
 # --------------------------------------------------------------------------- signals
 
-def _children(pid: int) -> set[int]:
-    kids = set()
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid:
-            kids.add(int(stat.parent.name))
-    return kids
-
-
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
-
-
 SIGNAL_JOBS = [
     ("simulate", ["simulate", "fork", "-o", "{tmp}/out", "--views", "4", "--val-views", "0",
                   "--resolution", "48", "48", "--jobs", "2"], "out"),
@@ -399,7 +381,7 @@ def test_signal_leaves_no_output_partial_or_worker(job, sig, ws, tmp_path):
         time.sleep(0.05)
     assert proc.poll() is None, f"{name} ended before it could be interrupted: {proc.stderr.read()}"
     time.sleep(0.5)                              # well inside the work
-    kids = _children(proc.pid)
+    kids = child_pids(proc.pid)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
     assert "Traceback" not in err, err
@@ -410,7 +392,7 @@ def test_signal_leaves_no_output_partial_or_worker(job, sig, ws, tmp_path):
         assert proc.returncode == (130 if sig == signal.SIGINT else 143), err
         assert list(tmp.iterdir()) == [], list(tmp.iterdir())
     time.sleep(0.2)
-    assert not [k for k in kids if _alive(k)], "worker processes outlived their parent"
+    assert not [k for k in kids if pid_alive(k)], "worker processes outlived their parent"
 
 
 def _dead_pid() -> int:

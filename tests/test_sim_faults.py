@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import child_pids, pid_alive
+
 from evdnerf_ros.cli import main
 
 # A run small enough to start quickly; each case changes one flag.
@@ -282,27 +284,6 @@ def test_video2events_bad_flags(tmp_path, capsys, flag, value):
 
 # ------------------------------------------------------------------ signals
 
-def _children(pid: int) -> list[int]:
-    kids = []
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                stat = (d / "stat").read_text()
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-                kids.append(int(d.name))
-    return kids
-
-
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state not in ("Z", "X")
-
-
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc (Linux)")
 @pytest.mark.parametrize("how", ["SIGINT", "SIGTERM", "Ctrl-C", "SIGKILL"])
 def test_workers_end_with_their_parent(tmp_path, how):
@@ -317,9 +298,9 @@ def test_workers_end_with_their_parent(tmp_path, how):
         start_new_session=True)
     try:
         deadline = time.monotonic() + 60
-        while len(_children(proc.pid)) < 2 and time.monotonic() < deadline:
+        while len(child_pids(proc.pid)) < 2 and time.monotonic() < deadline:
             time.sleep(0.05)
-        workers = _children(proc.pid)
+        workers = child_pids(proc.pid)
         assert len(workers) >= 2, proc.communicate(timeout=30)
         time.sleep(0.5)                         # the workers are simulating now
         assert proc.poll() is None
@@ -336,9 +317,9 @@ def test_workers_end_with_their_parent(tmp_path, how):
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
     deadline = time.monotonic() + 10
-    while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+    while any(pid_alive(w) for w in workers) and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert not any(_alive(w) for w in workers), (how, workers)
+    assert not any(pid_alive(w) for w in workers), (how, workers)
     assert not out.exists()
     if how != "SIGKILL":                         # a killed parent cannot clean up
         assert proc.returncode in (130, 143), (proc.returncode, err)
