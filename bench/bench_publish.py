@@ -169,11 +169,11 @@ def bench_field(tmp):
     import yaml
 
     run = make_field_run(Path(tmp) / "field_run")
-    from evdnerf_ros.sim.camera import look_at
-    from evdnerf_ros.io.messages import rotation_to_quaternion
+    from evdnerf_ros.geometry.camera import look_at
+    from evdnerf_ros.geometry.rotations import matrix_to_quat, quat_to_ros
 
     T = look_at([0.0, -3.0, 0.5], [0.0, 0.0, 0.0])
-    q = rotation_to_quaternion(T[:3, :3]).tolist()
+    q = quat_to_ros(matrix_to_quat(T[:3, :3])).tolist()
     traj = Path(tmp) / "field_traj.yaml"
     traj.write_text(yaml.safe_dump({"poses": [{"t_ns": 0, "position": T[:3, 3].tolist(), "orientation": q},
                                               {"t_ns": 20_000_000, "position": T[:3, 3].tolist(), "orientation": q}]}))

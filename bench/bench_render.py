@@ -34,7 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from evdnerf_ros.sim.camera import PinholeCamera  # noqa: E402
+from evdnerf_ros.geometry.camera import PinholeCamera  # noqa: E402
 from evdnerf_ros.sim.render import SceneRenderer  # noqa: E402
 from evdnerf_ros.sim.scene import list_presets, load_scene  # noqa: E402
 

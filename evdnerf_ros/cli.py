@@ -303,7 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rosbag2 storage plugin for a directory output (default mcap)")
     p.set_defaults(func=_cmd_convert_events)
 
-    from .sim.logmap import LOG_EPS
+    from .events.logmap import LOG_EPS
 
     p = sub.add_parser("video2events", help="turn a high-speed video into events (exact ESIM)",
                        description="FRAMES.npz holds `frames` (N, H, W) linear intensity "

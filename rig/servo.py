@@ -31,7 +31,7 @@ import numpy as np
 
 from evdnerf_ros.errors import EvdnerfError, InputError
 from evdnerf_ros.limits import check_number
-from evdnerf_ros.sim.servo_profile import RunProfile
+from evdnerf_ros.geometry.servo_profile import RunProfile
 
 PROTOCOL_VERSION = 1
 FIRMWARE_NAME = "rig_servo"

@@ -10,7 +10,7 @@ import torch
 from evdnerf_ros.field import (DNeRFField, DynamicField, OccupancyGrid, PlanesField,
                                make_field, ray_box_intersect, render_image, render_rays)
 from evdnerf_ros.field.render import camera_rays
-from evdnerf_ros.sim.camera import PinholeCamera, look_at
+from evdnerf_ros.geometry.camera import PinholeCamera, look_at
 
 BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 

@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from evdnerf_ros.sim.servo_profile import DEFAULT_RUN, RunProfile, move_command_mdeg
+from evdnerf_ros.geometry.servo_profile import DEFAULT_RUN, RunProfile, move_command_mdeg
 from rig import virtual_arduino as va_mod
 
 FRAME_NS = 20_000_000

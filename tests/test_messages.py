@@ -11,10 +11,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from evdnerf_ros.errors import FormatError, InputError
-from evdnerf_ros.io.messages import (K_from_camera_info, camera_info, check_rigid, intrinsics_from_camera_info,
+from evdnerf_ros.geometry.poses import check_rigid
+from evdnerf_ros.geometry.rotations import quat_from_ros, quat_to_matrix
+from evdnerf_ros.io.messages import (K_from_camera_info, camera_info, intrinsics_from_camera_info,
                                      joint_state, ns_to_sec_nanosec, ns_to_stamp, pose_from_pose_stamped,
-                                     pose_stamped, quaternion_to_rotation, stamp_to_ns, time_reference,
-                                     time_reference_ns)
+                                     pose_stamped, stamp_to_ns, time_reference, time_reference_ns)
 from evdnerf_ros.io.rosbag2 import BagWriter, open_bag
 from evdnerf_ros.io.typestore import ros2_typestore
 
@@ -93,7 +94,7 @@ def random_pose(rng):
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
     T = np.eye(4)
-    T[:3, :3] = quaternion_to_rotation(q)
+    T[:3, :3] = quat_to_matrix(quat_from_ros(q))
     T[:3, 3] = rng.normal(size=3) * 3
     return T
 

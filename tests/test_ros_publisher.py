@@ -10,15 +10,24 @@ import yaml
 
 from evdnerf_ros.cli import main
 from evdnerf_ros.errors import InputError
+from evdnerf_ros.geometry.rotations import matrix_to_quat, quat_from_ros, quat_to_matrix, quat_to_ros
 from evdnerf_ros.io import messages
 from evdnerf_ros.io.poses import extrinsics, load_poses
 from evdnerf_ros.io.rosbag2 import BagWriter, open_bag, read_events
 from evdnerf_ros.nodes.event_publisher import EventPublisher, run_node
-from evdnerf_ros.sim.camera import PinholeCamera, look_at
+from evdnerf_ros.geometry.camera import PinholeCamera, look_at
 from evdnerf_ros.sim.generator import EventGenerator
-from evdnerf_ros.sim.pose_track import PoseTrack
+from evdnerf_ros.geometry.pose_track import PoseTrack
 from evdnerf_ros.sim.render import SceneRenderer
 from evdnerf_ros.sim.scene import load_scene
+
+
+def quat_to_matrix_ros(q_xyzw):
+    return quat_to_matrix(quat_from_ros(q_xyzw))
+
+
+def matrix_to_quat_ros(R):
+    return quat_to_ros(matrix_to_quat(R))
 
 EVENTS = "/event_publisher/events"
 SMALL = {"camera.width": 24, "camera.height": 24, "realtime_factor": 0.0, "adaptive": False,
@@ -101,12 +110,12 @@ def test_yaml_csv_and_bag_trajectories_agree(tmp_path):
 
 def test_pose_track_slerps_and_interpolates_linearly():
     T0, T1 = np.eye(4), np.eye(4)
-    T1[:3, :3] = messages.quaternion_to_rotation([0, 0, math.sin(math.pi / 4), math.cos(math.pi / 4)])  # 90 deg yaw
+    T1[:3, :3] = quat_to_matrix_ros([0, 0, math.sin(math.pi / 4), math.cos(math.pi / 4)])  # 90 deg yaw
     T1[:3, 3] = [2.0, 0.0, 0.0]
     track = PoseTrack([10, 110], [T0, T1])
     mid = track(60)
     np.testing.assert_allclose(mid[:3, 3], [1.0, 0.0, 0.0])
-    np.testing.assert_allclose(mid[:3, :3], messages.quaternion_to_rotation(
+    np.testing.assert_allclose(mid[:3, :3], quat_to_matrix_ros(
         [0, 0, math.sin(math.pi / 8), math.cos(math.pi / 8)]), atol=1e-12)
     np.testing.assert_allclose(track(110), T1, atol=1e-12)
     with pytest.raises(InputError, match="outside the trajectory"):
@@ -230,7 +239,7 @@ def _traj_file(tmp_path, Ts, span_ns):
     t = np.linspace(0, span_ns, len(Ts)).astype(np.int64)
     poses = []
     for ti, T in zip(t, Ts):
-        q = messages.rotation_to_quaternion(T[:3, :3])
+        q = matrix_to_quat_ros(T[:3, :3])
         poses.append({"t_ns": int(ti), "position": T[:3, 3].tolist(), "orientation": q.tolist()})
     f = tmp_path / "traj.yaml"
     f.write_text(yaml.safe_dump({"poses": poses}))
@@ -307,7 +316,7 @@ def test_field_source_occupancy_mask_saves_rays_not_pixels(tmp_path):
         assert a.shape == (16, 20) and a.dtype == np.float32
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
     assert on.rays_rendered < 0.5 * off.rays_rendered and off.rays_rendered == off.rays_total == 2 * 320
-    poses = [{"t_ns": t, "position": T[:3, 3].tolist(), "orientation": messages.rotation_to_quaternion(
+    poses = [{"t_ns": t, "position": T[:3, 3].tolist(), "orientation": matrix_to_quat_ros(
         T[:3, :3]).tolist()} for t in (0, 20_000_000)]
     (tmp_path / "t.yaml").write_text(yaml.safe_dump({"poses": poses}))
     rep, _ = publish(tmp_path, run_dir=str(tmp_path / "run"), trajectory=str(tmp_path / "t.yaml"),

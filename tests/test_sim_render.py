@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from evdnerf_ros.errors import InputError
-from evdnerf_ros.sim.camera import PinholeCamera, look_at
+from evdnerf_ros.geometry.camera import PinholeCamera, look_at
 from evdnerf_ros.sim.render import SceneRenderer, render
 from evdnerf_ros.sim.scene import list_presets, load_scene, scene_from_dict
 

@@ -7,13 +7,12 @@ import pytest
 import yaml
 
 from evdnerf_ros.errors import InputError
-from evdnerf_ros.sim import servo_profile as sp
-from evdnerf_ros.sim.camera import CameraRing, PinholeCamera, look_at, ring_poses
+from evdnerf_ros.geometry import servo_profile as sp
+from evdnerf_ros.geometry.camera import CameraRing, PinholeCamera, look_at, ring_poses
 from evdnerf_ros.sim.scene import list_presets, load_scene, scene_from_dict
-from evdnerf_ros.sim.trajectory import (HermiteSpline, KeyframeTrajectory, RotationSpline,
-                                        matrix_to_quat, quat_from_axis_angle,
-                                        quat_from_euler_deg, quat_log, quat_mul, quat_to_matrix,
-                                        slerp)
+from evdnerf_ros.geometry.rotations import (matrix_to_quat, quat_from_axis_angle, quat_from_euler_deg,
+                                            quat_log, quat_mul, quat_to_matrix, slerp)
+from evdnerf_ros.geometry.trajectory import HermiteSpline, KeyframeTrajectory, RotationSpline
 
 MS = 1_000_000
 

@@ -14,7 +14,7 @@ import pytest
 from evdnerf_ros.eval.evaluate import run_eval, validation_eval
 from evdnerf_ros.events.types import EVENT_DTYPE
 from evdnerf_ros.io.trainingset import TrainingSet, ViewData, write_training_set
-from evdnerf_ros.sim.camera import ring_poses
+from evdnerf_ros.geometry.camera import ring_poses
 from evdnerf_ros.train.trainer import run_train
 
 W = H = 16

@@ -20,7 +20,7 @@ import numpy as np
 from ..events.slicing import window_edges
 from ..field.render import render_image
 from ..limits import check_memory
-from ..sim.pose_track import PoseTrack
+from ..geometry.pose_track import PoseTrack
 from ..train.sampler import camera_of
 from .metrics import brightness_align, event_metrics, protocol_windows, psnr
 

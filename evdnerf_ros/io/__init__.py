@@ -20,7 +20,7 @@ _EXPORTS = {
     "rosbag1": ("Rosbag1Writer", "write_events_rosbag1"),
     "messages": ("camera_info", "pose_stamped", "joint_state", "time_reference", "stamp_to_ns", "ns_to_stamp",
                  "K_from_camera_info", "intrinsics_from_camera_info", "pose_from_pose_stamped", "pose_to_matrix",
-                 "time_reference_ns", "check_rigid"),
+                 "time_reference_ns"),
     "typestore": ("ros2_typestore", "ros1_typestore", "EVENT_PACKET", "DVS_EVENT_ARRAY"),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}

@@ -69,6 +69,7 @@ from ..atomic import atomic_output
 from ..errors import FormatError, InputError
 from ..events.slicing import window_edges
 from ..events.types import EVENT_DTYPE
+from ..geometry.poses import check_rigid
 from ..limits import check_number
 from .guard import read_text, writing
 from .npz import check_npy_file
@@ -326,16 +327,16 @@ def _pose_cv(M, where: str) -> np.ndarray:
         raise FormatError(f"transform_matrix must be a finite 4x4 (or 3x4) matrix, got shape {T.shape}",
                           source=where)
     T = gl_to_cv(T)
+    if np.abs(T[3] - [0, 0, 0, 1]).max() <= IMPORT_POSE_TOL:
+        T[3] = [0.0, 0.0, 0.0, 1.0]                  # float32 files: snap the last row, then check
+    try:
+        check_rigid(T, "transform_matrix", tol=IMPORT_POSE_TOL)
+    except InputError as exc:
+        raise FormatError(str(exc), source=where) from None
     R = T[:3, :3]
-    err = float(np.abs(R.T @ R - np.eye(3)).max())
-    det = float(np.linalg.det(R))
-    if err > IMPORT_POSE_TOL or abs(det - 1) > IMPORT_POSE_TOL or np.abs(T[3] - [0, 0, 0, 1]).max() > IMPORT_POSE_TOL:
-        raise FormatError(f"transform_matrix is not a rigid transform (|R^T R - I| = {err:.3g}, det = {det:.6g})",
-                          source=where)
-    if err > 1e-9 or abs(det - 1) > 1e-9:
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-9:   # re-orthonormalise float32 rounding
         u, _, vt = np.linalg.svd(R)
         T[:3, :3] = u @ vt
-    T[3] = [0.0, 0.0, 0.0, 1.0]
     return T
 
 

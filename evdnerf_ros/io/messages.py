@@ -12,12 +12,13 @@ with ``ros2_typestore().serialize_cdr(msg, msg.__msgtype__)`` or write them with
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
 
 from ..errors import FormatError, InputError
+from ..geometry.poses import check_rigid
+from ..geometry.rotations import matrix_to_quat, quat_from_ros, quat_to_matrix, quat_to_ros
 from .typestore import ros2_typestore
 
 NS_PER_S = 1_000_000_000
@@ -28,8 +29,6 @@ INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
 #: Number of distortion coefficients each known ROS distortion model takes.
 DISTORTION_SIZES = {"plumb_bob": 5, "rational_polynomial": 8, "equidistant": 4}
 
-#: Tolerance on R^T R = I and det(R) = 1 when accepting a pose as rigid.
-RIGID_TOL = 1e-6
 #: Largest | |q| - 1 | accepted (and then normalised) when reading a quaternion.
 QUAT_NORM_TOL = 1e-3
 
@@ -211,57 +210,11 @@ def intrinsics_from_camera_info(msg) -> dict:
 # --------------------------------------------------------------------------- poses
 
 
-def check_rigid(T, what: str = "T_world_cam", *, tol: float = RIGID_TOL) -> np.ndarray:
-    """Return T as a 4x4 float64 array; InputError unless it is a proper rigid transform."""
-    T = _matrix(T, (4, 4), what)
-    if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise InputError(f"{what}: last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-    R = T[:3, :3]
-    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    det = float(np.linalg.det(R))
-    if err > tol or abs(det - 1.0) > tol:
-        raise InputError(f"{what}: rotation block is not a proper rotation (|R^T R - I| = {err:.3g}, "
-                         f"det = {det:.6g}; tolerance {tol:g}); re-orthonormalise it (e.g. via SVD) "
-                         "or fix the axis convention (a reflection has det -1)")
-    return T
-
-
-def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix -> unit quaternion (x, y, z, w) with w >= 0 (numerically stable branch)."""
-    m = R
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] >= m[1, 1] and m[0, 0] >= m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] >= m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.array(q, dtype=np.float64)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
-def quaternion_to_rotation(q) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) -> 3x3 rotation matrix."""
-    x, y, z, w = (float(v) for v in q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
 def pose_stamped(T_world_cam, stamp_ns: int, frame_id: str = "world"):
     """``geometry_msgs/msg/PoseStamped`` of a 4x4 rigid transform (the pose of the child in frame_id)."""
     T = check_rigid(T_world_cam)
     types = _types()
-    q = rotation_to_quaternion(T[:3, :3])
+    q = quat_to_ros(matrix_to_quat(T[:3, :3]))
     pose = types["geometry_msgs/msg/Pose"](
         position=types["geometry_msgs/msg/Point"](x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
         orientation=types["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]),
@@ -281,7 +234,7 @@ def pose_to_matrix(pose) -> np.ndarray:
                           f"not a valid rigid pose (need finite values and |q| within {QUAT_NORM_TOL} of 1)",
                           source="geometry_msgs/msg/Pose")
     T = np.eye(4)
-    T[:3, :3] = quaternion_to_rotation(q / n)
+    T[:3, :3] = quat_to_matrix(quat_from_ros(q / n))
     T[:3, 3] = t
     return T
 

@@ -31,7 +31,9 @@ import yaml
 
 from ..errors import InputError
 from .guard import read_text
-from .messages import check_rigid, quaternion_to_rotation, stamp_to_ns
+from ..geometry.poses import check_increasing_times, check_rigid
+from ..geometry.rotations import quat_from_ros, quat_to_matrix
+from .messages import stamp_to_ns
 
 POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped", "tf2_msgs/msg/TFMessage")
 QUAT_TOL = 1e-3
@@ -51,21 +53,13 @@ def _pose(src: str, i: int, position, orientation) -> np.ndarray:
         raise InputError(f"{src}: pose {i}: quaternion {q.tolist()} has norm {n:.6g}, not 1; write orientation "
                          "as a unit quaternion (x, y, z, w)")
     T = np.eye(4)
-    T[:3, :3] = quaternion_to_rotation(q / n)
+    T[:3, :3] = quat_to_matrix(quat_from_ros(q / n))
     T[:3, 3] = p
     return T
 
 
 def check_times(src: str, t: np.ndarray) -> np.ndarray:
-    t = np.asarray(t, dtype=np.int64)
-    if t.size < 2:
-        raise InputError(f"{src}: {t.size} pose(s); a trajectory needs at least 2 timestamped poses")
-    bad = np.flatnonzero(np.diff(t) <= 0)
-    if bad.size:
-        i = int(bad[0]) + 1
-        raise InputError(f"{src}: pose {i} at t={int(t[i])} ns does not come after pose {i - 1} at "
-                         f"t={int(t[i - 1])} ns; times must increase strictly (sort the poses, drop duplicates)")
-    return t
+    return check_increasing_times(t, src, min_count=2)
 
 
 #: Pose times (ns) beyond +-T_LIMIT are refused (int64 arithmetic on them must not overflow).

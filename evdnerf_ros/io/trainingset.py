@@ -81,6 +81,7 @@ import numpy as np
 from ..atomic import atomic_output
 from ..errors import FormatError, InputError
 from ..events.types import EVENT_DTYPE, validate_events
+from ..geometry.poses import check_rigid
 from ..limits import check_memory
 from .guard import h5_close, h5_create, h5_dataset, h5_memory, h5_number, h5_open, h5_reading, h5_text
 
@@ -118,26 +119,6 @@ def check_K(K, what: str) -> np.ndarray:
         raise InputError(f"{what}: K is not a pinhole intrinsic matrix (need fx, fy > 0 and last "
                          f"row [0, 0, 1]); got {K.tolist()}")
     return K
-
-
-def check_pose(T, what: str, *, tol: float = 1e-6) -> np.ndarray:
-    """A finite rigid 4x4 transform (rotation orthonormal with det +1, last row 0 0 0 1)."""
-    try:
-        T = np.asarray(T, np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"{what}: not a numeric 4x4 matrix") from None
-    if T.shape != (4, 4):
-        raise InputError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise InputError(f"{what}: contains NaN or inf; every pose must be finite")
-    R = T[:3, :3]
-    with np.errstate(all="ignore"):              # absurd entries: the checks below say so
-        err = float(np.abs(R.T @ R - np.eye(3)).max())
-        det = float(np.linalg.det(R))
-    if err > tol or abs(det - 1) > tol or not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise InputError(f"{what}: not a rigid transform (|R^T R - I| = {err:.3g}, det R = {det:.6g}, "
-                         f"last row {T[3].tolist()}); poses must be rotations + translations")
-    return T
 
 
 # =========================================================================== writing
@@ -320,7 +301,7 @@ class TrainingSetWriter:
         if split not in SPLITS:
             raise InputError(f"{what}: split {split!r} is not one of {SPLITS}")
         K = check_K(K, what)
-        T = check_pose(T_world_cam, f"{what}: T_world_cam")
+        T = check_rigid(T_world_cam, f"{what}: T_world_cam")
         g = self._views_group.create_group(name)
         g.attrs["split"] = split
         g.attrs["moving"] = poses_t is not None
@@ -336,7 +317,7 @@ class TrainingSetWriter:
             if np.any(np.diff(pt) < 0):
                 raise InputError(f"{what}: pose times are not sorted")
             for i in range(pt.size):
-                check_pose(pT[i], f"{what}: pose {i} (t={int(pt[i])} ns)")
+                check_rigid(pT[i], f"{what}: pose {i} (t={int(pt[i])} ns)")
             pg = g.create_group("poses")
             pg.create_dataset("t", data=pt.astype(np.int64))
             pg.create_dataset("T_world_cam", data=pT)
@@ -557,7 +538,7 @@ class TrainingSet:
         if split not in SPLITS:
             raise FormatError(f"view {name}: split {split!r} is not one of {SPLITS}; {_FIX}", source=where)
         K = check_K(h5_dataset(g, "K", where, shape=(3, 3), kinds="iuf", what=f"view {name}: K")[()], what)
-        T = check_pose(h5_dataset(g, "T_world_cam", where, shape=(4, 4), kinds="iuf",
+        T = check_rigid(h5_dataset(g, "T_world_cam", where, shape=(4, 4), kinds="iuf",
                                   what=f"view {name}: T_world_cam")[()], f"{what}: T_world_cam")
         num_events = h5_number(g.attrs, "num_events", f"{where}: view {name}", integer=True, low=0, high=T_LIMIT)
         has_events = g.attrs.get("has_events", True)
@@ -683,7 +664,7 @@ class TrainingSet:
             t, T = g["poses/t"][()].astype(np.int64), g["poses/T_world_cam"][()].astype(np.float64)
         if np.any(t[1:] < t[:-1]):
             raise FormatError(f"view {name}: poses/t is not sorted; {_FIX}", source=str(self.path))
-        check_poses(T, f"{self.path}: view {name}: poses/T_world_cam")
+        check_rigid(T, f"{self.path}: view {name}: poses/T_world_cam")
         return t, T
 
     def num_events(self, view) -> int:
@@ -879,25 +860,6 @@ class TrainingSet:
     def __repr__(self) -> str:
         return (f"TrainingSet({str(self.path)!r}: {len(self.views)} views, {self.width}x{self.height}, "
                 f"[{self.t_start}, {self.t_end}) ns)")
-
-
-def check_poses(T: np.ndarray, what: str, *, tol: float = 1e-6) -> np.ndarray:
-    """check_pose for a stack (M, 4, 4), vectorised; names the first bad pose."""
-    T = np.asarray(T, np.float64)
-    if T.ndim != 3 or T.shape[1:] != (4, 4):
-        raise InputError(f"{what}: expected (M, 4, 4) matrices, got shape {T.shape}")
-    finite = np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)
-    R = np.where(finite[:, None, None], T[:, :3, :3], np.eye(3))
-    with np.errstate(all="ignore"):
-        err = np.abs(np.einsum("mji,mjk->mik", R, R) - np.eye(3)).max(axis=(1, 2))
-        det = np.linalg.det(R)
-    last = np.all(T[:, 3] == [0.0, 0.0, 0.0, 1.0], axis=1)
-    bad = np.flatnonzero(~finite | (err > tol) | (np.abs(det - 1) > tol) | ~last)
-    if bad.size:
-        i = int(bad[0])
-        check_pose(T[i], f"{what}[{i}]")
-        raise InputError(f"{what}[{i}]: not a finite rigid transform")
-    return T
 
 
 def _check_edges(edges) -> np.ndarray:

@@ -144,7 +144,7 @@ class EventPublisher(Node):
 
     # ----- inputs
     def _camera(self):
-        from ..sim.camera import PinholeCamera
+        from ..geometry.camera import PinholeCamera
 
         p = self.params
         base = self.scene.camera if self.scene is not None else None
@@ -163,7 +163,7 @@ class EventPublisher(Node):
     def _trajectory(self):
         """(t0, t1, PoseTrack of T_world_robot, T_robot_cam)."""
         from ..io.poses import extrinsics, load_poses, matrix_extrinsics
-        from ..sim.pose_track import PoseTrack
+        from ..geometry.pose_track import PoseTrack
 
         p = self.params
         dur = int(round(p["duration"] * NS))

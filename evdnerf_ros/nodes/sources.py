@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from ..sim.camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 
 
 class SceneSource:

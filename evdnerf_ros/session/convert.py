@@ -73,7 +73,8 @@ from ..atomic import PARTIAL_SUFFIX, atomic_output
 from ..errors import EvdnerfError, FormatError, InputError, OutputExistsError
 from ..io.guard import OutputWriteError, check_free_space
 from ..limits import check_memory
-from ..io.trainingset import COMPRESSIONS, TrainingSetWriter, check_pose
+from ..geometry.poses import check_rigid
+from ..io.trainingset import COMPRESSIONS, TrainingSetWriter
 from .layout import Session, ViewRecord, load_session, session_yaml_path
 
 DEFAULT_TOPICS = {"events": "/event_camera/events", "camera_info": "/event_camera/camera_info",
@@ -367,7 +368,7 @@ def _plan_view(session: Session, v: ViewRecord, offset: int, topics: dict, optio
                         T, stamp, _frame = pose_from_pose_stamped(msg)
                     except EvdnerfError as exc:
                         raise InputError(f"pose topic {topics['pose']}, message {i}: {exc}") from None
-                    check_pose(T, f"pose topic {topics['pose']}, message {i}")
+                    check_rigid(T, f"pose topic {topics['pose']}, message {i}")
                     stamps.append(stamp)
                     mats.append(T)
                 if stamps:

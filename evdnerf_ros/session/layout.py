@@ -23,6 +23,7 @@ import yaml
 
 from ..atomic import atomic_output
 from ..errors import InputError
+from ..geometry.poses import check_rigid
 from ..io.guard import read_text
 from ..limits import check_number
 from ..io.trainingset import C_MAX, T_LIMIT
@@ -291,11 +292,10 @@ def _check_view(root: Path, v, where: _Where, seen: set) -> ViewRecord:
         raise (where / "split").error(f"view {name}: split {split!r} is not one of {SPLITS}")
     bag = _text(v, "bag", where, default=name)
     T = _matrix(v.get("T_world_cam"), (4, 4), where / "T_world_cam")
-    R = T[:3, :3]
-    if (np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or abs(np.linalg.det(R) - 1) > 1e-6
-            or np.abs(T[3] - [0, 0, 0, 1]).max() > 0):
-        raise (where / "T_world_cam").error(f"view {name}: T_world_cam is not a rigid transform (rotation must "
-                                            "be orthonormal with det +1, last row 0 0 0 1)")
+    try:
+        check_rigid(T, f"view {name}: T_world_cam")
+    except InputError as exc:
+        raise (where / "T_world_cam").error(str(exc)) from None
     azimuth = _number(v, "azimuth_deg", where, required=False, low=-1e6, high=1e6)
     frames = _text(v, "frames", where)
     gt = _mapping(v.get("ground_truth"), where / "ground_truth", required=False)

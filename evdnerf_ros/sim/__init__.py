@@ -5,7 +5,7 @@ the project-wide log rule and video2events.
 """
 
 from .generator import EventGenerator, generate_events
-from .logmap import LOG_EPS, check_intensity, intensity_from_log, log_intensity
+from ..events.logmap import LOG_EPS, check_intensity, intensity_from_log, log_intensity
 from .noise import MIN_THRESHOLD
 from .sampling import SamplingStats, simulate_renderer
 from .video import GAMMA_8BIT, linearize_8bit, load_frames_npz, run_video2events, video_to_events

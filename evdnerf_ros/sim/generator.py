@@ -2,7 +2,7 @@
 
 Model (Rebecq et al., ESIM, CoRL 2018), per pixel:
 
-* ``L = log(I + eps)`` in float64 (:mod:`evdnerf_ros.sim.logmap`); between two frames
+* ``L = log(I + eps)`` in float64 (:mod:`evdnerf_ros.events.logmap`); between two frames
   ``(t0, L0) -> (t1, L1)`` the log intensity is taken to be linear in time.
 * The pixel keeps a *reference* level. Moving up it fires an ON event each time L reaches
   ``reference + C+`` (and the reference moves there); moving down, an OFF event each time
@@ -45,7 +45,7 @@ import numpy as np
 from ..errors import InputError
 from ..events.types import EVENT_DTYPE, empty_events
 from . import noise as _noise
-from .logmap import LOG_EPS, check_eps, check_intensity
+from ..events.logmap import LOG_EPS, check_eps, check_intensity
 
 #: "No event yet" in the per-pixel last-event-time array (never compared by subtraction).
 _NEVER = np.iinfo(np.int64).min

@@ -38,7 +38,8 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import InputError
-from .camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
+from ..geometry.poses import check_rigid
 from .scene import Scene, Texture
 
 SHADOW_OFFSET = 1e-5        # metres along the normal before casting a shadow ray
@@ -141,16 +142,6 @@ def _ray_dirs(camera: PinholeCamera, s: int) -> np.ndarray:
     return d
 
 
-def _check_pose(T) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise InputError("T_world_cam must be a finite 4x4 matrix")
-    R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
-        raise InputError("T_world_cam's rotation is not orthonormal with det +1")
-    return T
-
-
 class SceneRenderer:
     """Renders one scene through one camera; ``__call__(T_world_cam, t_ns)`` -> intensity."""
 
@@ -173,7 +164,7 @@ class SceneRenderer:
     def render(self, T_world_cam, t_ns, *, geometry: bool = True) -> RenderResult:
         if isinstance(t_ns, (bool, float, np.floating)) or not isinstance(t_ns, (int, np.integer)):
             raise InputError(f"render time must be int64 nanoseconds; got {t_ns!r}")
-        T = _check_pose(T_world_cam)
+        T = check_rigid(T_world_cam, "T_world_cam")
         t = int(t_ns)
         s = self.supersample
         leaves = self.scene.leaves

@@ -54,7 +54,7 @@ import numpy as np
 from ..errors import InputError
 from ..events.types import empty_events
 from .generator import EventGenerator, _as_time
-from .logmap import log_intensity
+from ..events.logmap import log_intensity
 
 #: Default largest step: ESIM renders at least at 30 Hz.
 DEFAULT_MAX_STEP_NS = 33_333_333

@@ -88,10 +88,11 @@ import yaml
 
 from ..errors import InputError
 from . import geometry as geo
-from .camera import CameraRing, CameraSetup, PinholeCamera
-from .servo_profile import DEFAULT_RUN, RunProfile, move_profile
-from .trajectory import (HingeMotion, KeyframeTrajectory, angle_keyframes, quat_from_euler_deg,
-                         quat_normalize, quat_to_matrix, rigid)
+from ..geometry.camera import CameraRing, CameraSetup, PinholeCamera
+from ..geometry.servo_profile import DEFAULT_RUN, RunProfile, move_profile
+from ..geometry.poses import rigid
+from ..geometry.rotations import quat_from_euler_deg, quat_normalize, quat_to_matrix
+from ..geometry.trajectory import HingeMotion, KeyframeTrajectory, angle_keyframes
 
 PRESET_DIR = Path(__file__).resolve().parents[2] / "config" / "scenes"
 #: Largest magnitude of any number in a scene file (metres, degrees, intensities): far

@@ -52,9 +52,9 @@ from ..errors import InputError
 from ..limits import check_memory, check_number
 from ..events.types import empty_triggers, make_triggers
 from ..session.layout import SESSION_FORMAT, SESSION_FORMAT_VERSION, write_session_yaml
-from .camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 from .generator import EventGenerator
-from .logmap import LOG_EPS
+from ..events.logmap import LOG_EPS
 from .noise import MIN_THRESHOLD
 from .motion import image_travel
 from .render import SceneRenderer
@@ -324,7 +324,7 @@ def _pose_function(task: ViewTask, track):
     topic would."""
     if track is None:
         return lambda t: task.T_world_cam
-    from .pose_track import PoseTrack
+    from ..geometry.pose_track import PoseTrack
 
     return PoseTrack(*track, source=f"view {task.name} trajectory")
 

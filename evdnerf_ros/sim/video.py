@@ -30,7 +30,7 @@ import numpy as np
 from ..errors import InputError, OutputExistsError
 from ..limits import check_memory, check_number
 from .generator import _MAX_INTERVAL_NS, _MAX_SIDE, EventGenerator
-from .logmap import LOG_EPS, check_intensity
+from ..events.logmap import LOG_EPS, check_intensity
 from .noise import MIN_THRESHOLD
 
 #: Frame times lie within +-2**62 ns (146 years), so every difference fits in int64.

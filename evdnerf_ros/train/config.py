@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
-from ..sim.logmap import LOG_EPS
+from ..events.logmap import LOG_EPS
 from .ranges import check_config, show
 
 LOSSES = ("bin", "bin_paper", "mse")
@@ -74,7 +74,7 @@ class TrainConfig:
     dynamic_misses: int = 0
     """Views that may see a voxel off their footprint and still keep it dynamic (occlusion)."""
     log_eps: float = LOG_EPS
-    """eps of L = log(I + eps), the toolkit's one log rule (sim.logmap.LOG_EPS)."""
+    """eps of L = log(I + eps), the toolkit's one log rule (events.logmap.LOG_EPS)."""
 
     # ---- rays
     rays: int = 1024

@@ -21,7 +21,7 @@ import torch
 from ..errors import InputError
 from ..events.slicing import window_edges
 from ..field import camera_rays
-from ..sim.camera import PinholeCamera
+from ..geometry.camera import PinholeCamera
 
 
 def camera_of(K: np.ndarray, width: int, height: int) -> PinholeCamera:

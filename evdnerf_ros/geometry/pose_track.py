@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from ..io.poses import check_times
-from .trajectory import matrix_to_quat, quat_to_matrix, slerp
+from .poses import check_increasing_times
+from .rotations import matrix_to_quat, quat_to_matrix, slerp
 
 
 class PoseTrack:
@@ -20,7 +20,7 @@ class PoseTrack:
         T = np.asarray(T, dtype=np.float64)
         if t.ndim != 1 or T.shape != (t.size, 4, 4) or t.size < 2:
             raise InputError(f"{source}: need >= 2 times and as many 4x4 poses (got {t.shape}, {T.shape})")
-        dt = np.diff(check_times(source, t))
+        dt = np.diff(check_increasing_times(t, source, min_count=2))
         if max_gap_ns is not None and np.any(dt > max_gap_ns):
             i = int(np.argmax(dt))
             raise InputError(f"{source}: gap of {dt[i] / 1e9:.3f} s between pose {i} (t={int(t[i])} ns) and "
