@@ -37,10 +37,11 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))     # synthetic_events: a test-only generator
 
 from evdnerf_ros.events.codecs import decode, encode  # noqa: E402
-from evdnerf_ros.events.codecs._synth import synthetic_events  # noqa: E402
 from evdnerf_ros.io.raw import read_raw, write_raw  # noqa: E402
+from synthetic_events import synthetic_events  # noqa: E402
 
 PEER_DTYPE = np.dtype([("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "u1")])
 
@@ -116,8 +117,9 @@ COLD_START_CODE = r"""
 import json, sys, time
 t0 = time.perf_counter()
 sys.path.insert(0, sys.argv[1])
+sys.path.insert(0, sys.argv[1] + "/tests")
 from evdnerf_ros.events.codecs import decode, encode
-from evdnerf_ros.events.codecs._synth import synthetic_events
+from synthetic_events import synthetic_events
 t1 = time.perf_counter()
 ev = synthetic_events(1000, seed=0)
 blobs = {enc: open(f"{sys.argv[2]}/{enc}.bin", "rb").read() for enc in ("evt3", "evt2")}

@@ -11,8 +11,8 @@ from evdnerf_ros.errors import FormatError, InputError
 from evdnerf_ros.events.codecs import (
     Decoded, DroppedEventsWarning, decode, encode, make_decoder, make_encoder,
 )
-from evdnerf_ros.events.codecs._synth import synthetic_events, synthetic_triggers
 from evdnerf_ros.events.types import make_events, make_triggers
+from synthetic_events import synthetic_events, synthetic_triggers
 
 
 def words(*ws) -> bytes:

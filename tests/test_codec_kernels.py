@@ -10,8 +10,8 @@ from evdnerf_ros.errors import FormatError
 from evdnerf_ros.events.codecs import (
     Decoded, DroppedEventsWarning, _common, decode, encode, evt2, evt3, make_decoder, make_encoder,
 )
-from evdnerf_ros.events.codecs._synth import synthetic_events, synthetic_triggers
 from evdnerf_ros.events.types import make_events, make_triggers
+from synthetic_events import synthetic_events, synthetic_triggers
 
 MAX_ID = {"evt3": 16, "evt2": 32}
 

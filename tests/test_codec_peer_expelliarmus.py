@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from evdnerf_ros.errors import FormatError
-from evdnerf_ros.events.codecs._synth import synthetic_events
 from evdnerf_ros.io.raw import read_raw, read_raw_header, write_raw
+from synthetic_events import synthetic_events
 
 expelliarmus = pytest.importorskip("expelliarmus")
 Wizard = expelliarmus.Wizard

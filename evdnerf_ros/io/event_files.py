@@ -7,6 +7,10 @@
 | `*.h5`, `*.hdf5`         | HDF5 events/{t,x,y,p} (see h5events.py)                |
 | `*.bag`                  | ROS 1 bag, dvs_msgs/EventArray                          |
 | directory, `*.mcap`, `*.db3` | rosbag2 (MCAP or sqlite3), EventPacket or EventArray |
+
+Times are int64 ns in every container and come back exactly; a RAW file carries sensor
+microseconds after the origin in its `% t0` header line, so events at epoch times make files
+as small as events at sensor times (see raw.py).
 """
 
 from __future__ import annotations

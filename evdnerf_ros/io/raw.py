@@ -3,15 +3,34 @@
     read_raw_header(path) -> RawHeader
     read_raw(path) -> (Decoded, RawHeader)         whole file, exact-size output
     iter_raw(path) -> Iterator[Decoded]             bounded memory, chunk by chunk
-    write_raw(path, events, width=, height=, encoding="evt3", triggers=None)
+    write_raw(path, events, width=, height=, encoding="evt3", triggers=None, t0_ns=None)
 
 Header: lines starting with "% " (or a bare "%") before the binary data; it ends after a
 "% end" line or at the first line that does not start that way. The encoding comes from
 `% format EVT3;height=720;width=1280` or from the older `% evt 3.0` / `% evt 2.0` lines; the
 geometry from the format line's width/height or from `% geometry 1280x720`, else (files
 before 2021) from `% plugin_name` as OpenEB infers it (gen3 / gen31: 640x480, gen41 / imx636:
-1280x720, imx8: 320x320). Event times in a
-RAW file are sensor microseconds: t_ns = 1000 * us.
+1280x720, imx8: 320x320).
+
+Times and the `% t0` line. The words of a RAW file carry sensor-clock microseconds, counted
+from when the camera started streaming, not from the recording's start nor from any date
+(Prophesee's "Timestamp Shifting" page); OpenEB writes no header line about the time origin.
+Its readers shift times by default so that they count from the file's first TIME_HIGH (less
+one 4096 us unit; RawFileConfig do_time_shifting_), which loses the sensor time; this module
+never shifts: a file's event times are t_ns = t0 + 1000 * sensor_us, where t0 is 0 unless
+the header has a line `% t0 <integer>`, an extension of this project: the time origin in
+int64 nanoseconds (RawHeader.t0_ns). OpenEB keeps header keys it does not know and ignores
+them, so its tools read such a file at its sensor times.
+
+write_raw keeps sensor times that lie in a sensor clock's first 2**24 us period (t0 = 0, no
+`% t0` line: what a camera writes reads back unchanged); any other first time (an epoch time,
+or a negative one) becomes t0 = that time rounded down to a multiple of 4096 us (one EVT 3.0
+TIME_HIGH unit), written in the `% t0` line, and the sensor times start below 4096 us. Without
+that, EVT 3.0 must count every 2**24 us wrap since the sensor's zero: 0.6 s of events at a
+2023 epoch took 810 MB of TIME_HIGH words; now the size follows the events, not the date.
+EVT 2.0 / 3.0 carry whole microseconds: reading a file back gives the written int64 ns times
+exactly, and times that are not whole microseconds are refused (round them explicitly with
+evdnerf_ros.events.codecs.quantize_to_us).
 """
 
 from __future__ import annotations
@@ -26,8 +45,11 @@ import numpy as np
 from ..atomic import atomic_output
 from ..errors import FormatError, InputError, OutputExistsError
 from ..events.codecs import Decoded, make_decoder, make_encoder
-from ..events.codecs._common import check_events_for_us, concat_triggers, triggers_to_us
-from ..events.types import EVENT_DTYPE, MAX_SENSOR_SIZE
+from ..events.codecs._common import (
+    TIME_BASE_LIMIT, check_events_for_us, check_time_base, concat_triggers, sensor_origin_ns,
+    triggers_to_us,
+)
+from ..events.types import EVENT_DTYPE, MAX_SENSOR_SIZE, as_events
 from ..limits import check_memory
 from .guard import writing
 
@@ -41,13 +63,15 @@ _WRITE_CHUNK_EVENTS = 1 << 20
 
 @dataclass
 class RawHeader:
-    """What a RAW file's text header says. width / height are None when it gives no geometry."""
+    """What a RAW file's text header says. width / height are None when it gives no geometry;
+    t0_ns is the time origin of its `% t0` line (0 without one): event t_ns = t0_ns + 1000 * us."""
 
     encoding: str
     width: int | None
     height: int | None
     fields: dict[str, str] = field(default_factory=dict)
     header_bytes: int = 0
+    t0_ns: int = 0
 
 
 def _parse_header_bytes(read, source: str) -> tuple[dict[str, str], int]:
@@ -179,7 +203,24 @@ def _interpret(fields: dict[str, str], header_bytes: int, source: str) -> RawHea
             raise FormatError(f"'% geometry {geom}' is not WIDTHxHEIGHT", source=source)
         width = _positive_int(w, "geometry width", source) if width is None else width
         height = _positive_int(h, "geometry height", source) if height is None else height
-    return RawHeader(encoding, width, height, dict(fields), header_bytes)
+    return RawHeader(encoding, width, height, dict(fields), header_bytes,
+                     _t0_ns(_lookup(fields, "t0"), source))
+
+
+def _t0_ns(text: str | None, source: str) -> int:
+    """The `% t0` line's value: an integer number of nanoseconds (module doc)."""
+    if text is None:
+        return 0
+    try:
+        v = int(text.strip())
+    except ValueError:
+        raise FormatError(f"'% t0 {text}' is not an integer; the line gives the time origin in "
+                          "nanoseconds (e.g. '% t0 1700000000000000000'): fix or remove it",
+                          source=source) from None
+    if abs(v) >= TIME_BASE_LIMIT:
+        raise FormatError(f"'% t0 {text}' is out of range (|t0| < 2**62 ns, about 146 years): fix "
+                          "or remove the line", source=source)
+    return v
 
 
 # Pre-2021 RAW files have no geometry line; OpenEB infers the sensor size from the HAL
@@ -252,7 +293,8 @@ def _read_body(path, header_bytes: int, piece: int, source: str, on_piece=None) 
 
 def read_raw(path, *, chunk_bytes: int = 64 << 20, time_low_carry: bool = False
              ) -> tuple[Decoded, RawHeader]:
-    """Decode a whole RAW file; returns (Decoded, RawHeader). Times: t_ns = 1000 * sensor us.
+    """Decode a whole RAW file; returns (Decoded, RawHeader). Times: t_ns = t0 + 1000 * sensor
+    us, t0 from the header's `% t0` line (0 without one; see the module doc).
 
     The body is read into memory (counting an upper bound of its events piece by piece while
     in cache), then streamed through the decoder in `chunk_bytes` pieces straight into one
@@ -263,8 +305,8 @@ def read_raw(path, *, chunk_bytes: int = 64 << 20, time_low_carry: bool = False
     header = read_raw_header(path)
     chunk = _chunk_size(chunk_bytes)
     source = str(path)
-    dec = make_decoder(header.encoding, source=source, offset=header.header_bytes,
-                       time_low_carry=time_low_carry)
+    dec = make_decoder(header.encoding, time_base_ns=header.t0_ns, source=source,
+                       offset=header.header_bytes, time_low_carry=time_low_carry)
     # count the events piece by piece while the bytes are in cache; pieces must start on
     # word boundaries (a short read would break that: then count again afterwards)
     counts = []
@@ -310,8 +352,8 @@ def iter_raw(path, *, chunk_bytes: int = 16 << 20, time_low_carry: bool = False
     """
     header = read_raw_header(path)
     chunk = _chunk_size(chunk_bytes)
-    dec = make_decoder(header.encoding, source=str(path), offset=header.header_bytes,
-                       time_low_carry=time_low_carry)
+    dec = make_decoder(header.encoding, time_base_ns=header.t0_ns, source=str(path),
+                       offset=header.header_bytes, time_low_carry=time_low_carry)
     buf = np.empty(chunk, np.uint8)
     with open(path, "rb") as f:
         f.seek(header.header_bytes)
@@ -325,7 +367,7 @@ def iter_raw(path, *, chunk_bytes: int = 16 << 20, time_low_carry: bool = False
     dec.close()
 
 
-def _header_text(encoding: str, width: int, height: int) -> bytes:
+def _header_text(encoding: str, width: int, height: int, t0_ns: int) -> bytes:
     evt = "3.0" if encoding == "evt3" else "2.0"
     fmt = "EVT3" if encoding == "evt3" else "EVT2"
     lines = [
@@ -333,14 +375,21 @@ def _header_text(encoding: str, width: int, height: int) -> bytes:
         f"% evt {evt}",
         f"% format {fmt};height={height};width={width}",
         f"% geometry {width}x{height}",
-        "% end",
     ]
+    if t0_ns:
+        lines.append(f"% t0 {t0_ns}")
+    lines.append("% end")
     return ("\n".join(lines) + "\n").encode("ascii")
 
 
 def write_raw(path, events, *, width: int, height: int, encoding: str = "evt3",
-              triggers=None) -> None:
-    """Write events (whole microseconds, t_ns = 1000 * us) as an OpenEB RAW file.
+              triggers=None, t0_ns: int | None = None) -> None:
+    """Write events (and triggers; int64 ns, whole microseconds) as an OpenEB RAW file.
+
+    The sensor times written are t - t0 in microseconds; t0 (ns) goes in a `% t0` header line
+    when it is not 0. By default (t0_ns=None) t0 is 0 when the first time lies in a sensor
+    clock's first 2**24 us, else that time rounded down to 4096 us, so the file's size follows
+    the events, not the date (module doc). An explicit t0_ns must not be after the first time.
 
     Refuses an existing path (OutputExistsError); the file appears atomically (see
     evdnerf_ros.atomic: nothing is left behind on error, an existing file is never replaced).
@@ -355,17 +404,30 @@ def write_raw(path, events, *, width: int, height: int, encoding: str = "evt3",
         raise OutputExistsError(path)
     # validate everything up front so that a bad input never leaves a file behind
     name = "EVT 3.0" if encoding == "evt3" else "EVT 2.0"
-    events = check_events_for_us(events, 0, name)
+    events = as_events(events, source="events")
+    first = _first_time(events, triggers)
+    if t0_ns is None:
+        t0 = sensor_origin_ns(first) if first is not None else 0
+    else:
+        try:
+            t0 = check_time_base(t0_ns)
+        except InputError:
+            raise InputError(f"t0_ns must be an integer number of nanoseconds with |t0_ns| < 2**62, "
+                             f"got {t0_ns!r}") from None
+        if first is not None and first < t0:
+            raise InputError(f"{path}: t0_ns={t0} is after the first event or trigger (t={first} ns); "
+                             "the time origin must be at or before it (or leave t0_ns=None)")
+    events = check_events_for_us(events, t0, name)
     for axis, limit in (("x", int(width)), ("y", int(height))):
         col = events[axis]
         if col.size and int(col.max()) >= limit:
             i = int(np.flatnonzero(col >= limit)[0])
             raise InputError(f"events: event {i} has {axis}={int(col[i])} outside the declared "
                              f"{width}x{height} geometry; give the sensor's real width and height")
-    triggers, _ = triggers_to_us(triggers, 0, name, max_id=16 if encoding == "evt3" else 32)
-    enc = make_encoder(encoding)
+    triggers, _ = triggers_to_us(triggers, t0, name, max_id=16 if encoding == "evt3" else 32)
+    enc = make_encoder(encoding, time_base_ns=t0)
     with atomic_output(path) as tmp, writing(path), open(tmp, "wb") as f:
-        f.write(_header_text(encoding, int(width), int(height)))
+        f.write(_header_text(encoding, int(width), int(height), t0))
         n = events.shape[0]
         if triggers.size:
             # triggers go with the chunk that covers their time
@@ -381,3 +443,14 @@ def write_raw(path, events, *, width: int, height: int, encoding: str = "evt3",
                 hi = tt.shape[0] if last else np.searchsorted(tt, bounds[ci], side="right")
                 tr = triggers[lo:hi]
             f.write(enc.encode(ev, tr))
+
+
+def _first_time(events: np.ndarray, triggers) -> int | None:
+    """The earliest of the first event's and the first trigger's time (None if neither); a
+    malformed trigger array is left to triggers_to_us to refuse."""
+    firsts = [int(events["t"][0])] if events.ndim == 1 and events.size else []
+    if triggers is not None:
+        tr = np.asarray(triggers)
+        if tr.ndim == 1 and tr.size and "t" in (tr.dtype.names or ()):
+            firsts.append(int(tr["t"][0]))
+    return min(firsts) if firsts else None

@@ -99,6 +99,31 @@ TIME_BASE_LIMIT = 1 << 62
 MAX_SENSOR_US = ((1 << 63) - 1 - TIME_BASE_LIMIT) // 1000
 
 
+#: EVT 3.0 time is 24 bits of microseconds: a sensor clock's first period.
+SENSOR_PERIOD_US = 1 << 24
+#: Origins chosen by sensor_origin_ns are multiples of this: one EVT 3.0 TIME_HIGH unit, and
+#: a multiple of EVT 2.0's (64 us), so the low time bits stay those of the absolute time.
+ORIGIN_STEP_US = 4096
+
+
+def sensor_origin_ns(first_ns) -> int:
+    """The time origin (ns) for writing a stream whose first event or trigger is at `first_ns`,
+    so that its sensor times start near zero whatever the date.
+
+    An EVT stream counts time from its sensor clock's zero: a first time far from the time
+    base costs one TIME_HIGH word per 2**22 us in between (hundreds of MB for an epoch time
+    in 2023). Times already inside the first 2**24 us period are sensor times and keep origin
+    0 (they are written as they are); any other time gets the origin `first_ns` rounded down
+    to a whole multiple of 4096 us, so the stream's first sensor time is below 4096 us.
+    The origin is a whole microsecond, so whole-microsecond times stay whole microseconds.
+    """
+    first_ns = int(first_ns)
+    if 0 <= first_ns < SENSOR_PERIOD_US * 1000:
+        return 0
+    step = ORIGIN_STEP_US * 1000
+    return first_ns // step * step
+
+
 def check_time_base(time_base_ns) -> int:
     if isinstance(time_base_ns, (bool, float)) or not isinstance(time_base_ns, (int, np.integer)):
         raise InputError(f"time_base_ns must be an integer number of nanoseconds, got {time_base_ns!r}")
@@ -468,6 +493,10 @@ class ChunkedEncoder(abc.ABC):
     triggers, prev_high, carry) -> (words, prev_high, carry)`. Large inputs are encoded in
     chunks of ENCODE_CHUNK events (bounded temporaries); `carry` continues the word stream
     across chunks of one call without repeating the header words a new call starts with.
+
+    The stream counts time from time_base_ns, and every 2**24 us (EVT 3.0) or 2**34 us (EVT
+    2.0) wrap since then takes TIME_HIGH words: for absolute (epoch) times choose a time base
+    near the first event, e.g. sensor_origin_ns(first time), as io/raw.py does.
     """
 
     NAME = "?"

@@ -1,4 +1,7 @@
-"""Synthetic event streams for codec tests and benchmarks (microsecond grid, vectorised).
+"""Synthetic event streams for the codec tests and benchmarks (microsecond grid, vectorised).
+
+Test-only: tests import it as `from synthetic_events import ...` (pytest puts tests/ on
+sys.path); bench/bench_codecs.py adds tests/ to sys.path itself.
 
 A stream mixes dense row bursts (one microsecond, one row, one polarity, runs of adjacent
 columns, what a sensor sends as EVT 3.0 vectors) with uniformly scattered events.
@@ -8,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..types import EVENT_DTYPE, TRIGGER_DTYPE
+from evdnerf_ros.events.types import EVENT_DTYPE, TRIGGER_DTYPE
 
 
 def synthetic_events(n: int, *, duration_us: int | None = None, width: int = 1280,
