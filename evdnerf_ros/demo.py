@@ -36,7 +36,7 @@ from .eval.evaluate import run_eval, validation_eval
 from .eval.figures import run_report
 from .session.convert import run_convert
 from .session.sync import run_sync
-from .sim.session import SimulationOptions, simulate_session
+from .sim.simulate import SimulationOptions, simulate_session
 from .train.trainer import run_train
 
 SCENE = "fork"

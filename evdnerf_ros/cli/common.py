@@ -1,0 +1,91 @@
+"""What every command shares: the parser with the one-line error contract, argparse types for
+ranged numbers and sizes, SIGTERM as an interrupt, and one line for OS errors."""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import signal
+import sys
+
+from ..errors import EvdnerfError
+
+TOPIC_HELP = "event topic inside a bag (default /event_camera/events)"
+GEOMETRY_HELP = ("sensor size WxH of a RAW file whose header gives none (neither a geometry line nor a "
+                 "known plugin_name), e.g. 640x480")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the toolkit's error contract: one line, exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"evdnerf: error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def number(kind=float, *, low=None, high=None, low_open=False):
+    """An argparse type: a finite number of `kind` in the documented range (limits.check_number)."""
+    from ..limits import check_number
+
+    def parse(text):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'a whole number' if kind is int else 'a number'}, "
+                                             f"got {text!r}") from None
+        try:
+            return check_number(value, "value", low=low, high=high, low_open=low_open)
+        except EvdnerfError as exc:
+            raise argparse.ArgumentTypeError(str(exc).removeprefix("value: ")) from None
+
+    parse.__name__ = kind.__name__          # argparse names the type in its messages
+    return parse
+
+
+def geometry(text: str) -> tuple[int, int]:
+    """argparse type of --geometry WxH."""
+    from ..limits import check_number
+
+    w, sep, h = str(text).lower().partition("x")
+    try:
+        if not sep:
+            raise ValueError("no 'x' between width and height")
+        return (check_number(int(w), "width", low=1, high=65535),
+                check_number(int(h), "height", low=1, high=65535))
+    except (ValueError, EvdnerfError) as exc:
+        raise argparse.ArgumentTypeError(f"expected WxH such as 640x480, got {text!r} ({exc})") from None
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, delivered like Ctrl-C so every `finally` and cleanup handler runs."""
+
+
+def _on_sigterm(signum, frame):
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)   # one clean-up; a second TERM must not cut it short
+    raise Terminated()
+
+
+def os_error_message(exc: OSError) -> str:
+    """One line for an OSError: the path, what went wrong, and what would fix it."""
+    where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
+    what = exc.strerror or str(exc)
+    hint = {errno.ENOSPC: "free some space or write elsewhere",
+            errno.EDQUOT: "free some space or write elsewhere",
+            errno.EFBIG: "the file is larger than this system allows; write elsewhere",
+            errno.EROFS: "the file system is read-only; write elsewhere",
+            errno.EACCES: "check the permissions or choose another path",
+            errno.EPERM: "check the permissions or choose another path",
+            errno.ENOENT: "check the path",
+            errno.EISDIR: "give a file path, not a folder",
+            errno.ENOTDIR: "a part of the path is a file, not a folder"}.get(exc.errno)
+    return f"{where + ': ' if where else ''}{what}" + (f"; {hint}" if hint else "")
+
+
+def _fail(message: str) -> int:
+    """The one error line (messages quoting a parser's multi-line report are folded) and exit 2."""
+    print("evdnerf: error: " + " ".join(message.split()), file=sys.stderr)
+    return 2
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings (dropped events, clamped display ranges) as one line each, like errors."""
+    print("evdnerf: warning: " + " ".join(str(message).split()), file=sys.stderr)

@@ -1,0 +1,96 @@
+"""`evdnerf publish` and `evdnerf echo`: the ROS 2 nodes without ROS."""
+
+from __future__ import annotations
+
+import json
+
+from ..errors import EvdnerfError
+from .common import number
+
+
+
+def _cmd_publish(args) -> int:
+    from ..nodes.event_publisher import run_node
+    from ..ros.args import parse_value
+
+    overrides = {k: v for k, v in (
+        ("scene", args.scene), ("run_dir", args.run), ("trajectory", args.trajectory),
+        ("bag", args.output), ("encoding", args.encoding), ("duration", args.duration),
+        ("realtime_factor", args.realtime_factor)) if v is not None}
+    if args.realtime_factor is None and not args.params_file:
+        overrides["realtime_factor"] = 0.0     # a bag does not need real-time pace
+    if args.resolution:
+        overrides["camera.width"], overrides["camera.height"] = args.resolution
+    for item in args.param or ():
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise EvdnerfError(f"-p {item!r}: expected name=value (e.g. -p c_pos=0.3)")
+        overrides[name] = parse_value(value, f"-p {name}")
+    if not args.dds and not overrides.get("bag"):
+        raise EvdnerfError("without --dds the events go only into a bag: give -o BAG")
+    argv = ["--ros-args", "--params-file", args.params_file] if args.params_file else []
+    report = run_node(argv, overrides=overrides, dds=args.dds)
+    if args.json:
+        print(json.dumps(report.as_dict(), indent=2))
+    return 130 if report.interrupted else 0
+
+
+def _cmd_echo(args) -> int:
+    from ..nodes.echo import format_report, run_echo
+
+    rep = run_echo(args.topic, args.type, qos=args.qos, depth=args.depth, count=args.count, duration=args.duration,
+                   idle=args.idle, png=args.png, npz=args.save_events, overwrite=args.overwrite,
+                   print_fn=(lambda *_: None) if args.json else print)
+    if args.json:
+        print(json.dumps(rep.as_dict(), indent=2))
+    else:
+        print(format_report(rep))
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("publish", help="publish the events a robot-mounted camera would see (bag and/or DDS)",
+                       description="Run the event publisher node (the `event_publisher` executable) without "
+                                   "ROS: render a synthetic scene or a trained run along a robot trajectory, "
+                                   "generate a continuous event stream and write it (EventPacket evt3 + "
+                                   "CameraInfo) into a rosbag2; --dds also publishes on Cyclone DDS with ROS 2 "
+                                   "naming (ROS_DOMAIN_ID, ROS_LOCALHOST_ONLY). Every node parameter can be set "
+                                   "with -p name=value or --params-file (see README).")
+    p.add_argument("-o", "--output", help="rosbag2 to write (must not exist)")
+    p.add_argument("--dds", action="store_true", help="also publish over DDS")
+    p.add_argument("--scene", help="scene preset or YAML (default fork)")
+    p.add_argument("--run", help="trained run folder instead of a synthetic scene")
+    p.add_argument("--trajectory", help="robot poses: bag (Odometry, PoseStamped, /tf), .yaml or .csv")
+    p.add_argument("--resolution", type=number(int, low=1, high=16_384), nargs=2, metavar=("W", "H"),
+                   help="camera size, 1..16384 each (default: the scene's)")
+    p.add_argument("--encoding", choices=["evt3", "evt2", "mono", "array"], help="event message (default evt3)")
+    p.add_argument("--duration", type=number(float, low=0, low_open=True), help="seconds to publish (default: all)")
+    p.add_argument("--realtime-factor", type=number(float, low=0, high=1e6),
+                   help="1 = real time, 0 = as fast as possible (default 0 here unless --params-file; "
+                        "1 for event_publisher)")
+    p.add_argument("-p", "--param", action="append", metavar="NAME=VALUE", help="any node parameter (repeatable)")
+    p.add_argument("--params-file", help="ros__parameters YAML (as config/event_publisher.yaml)")
+    p.add_argument("--json", action="store_true", help="print the run report as JSON")
+    p.set_defaults(func=_cmd_publish)
+
+    p = sub.add_parser("echo", help="show what is on a DDS topic: rate, sizes, an event image",
+                       description="Subscribe to a ROS 2 topic over Cyclone DDS (ROS_DOMAIN_ID, "
+                                   "ROS_LOCALHOST_ONLY) and report message rate, bandwidth and size; event "
+                                   "topics are decoded and drawn as an ASCII event image (and --png).")
+    p.add_argument("topic", help="absolute topic, e.g. /event_publisher/events")
+    p.add_argument("--type", default="event_camera_msgs/msg/EventPacket",
+                   help="message type (default %(default)s; e.g. dvs_msgs/msg/EventArray)")
+    p.add_argument("--qos", choices=["default", "sensor_data", "transient_local"], default="default",
+                   help="subscriber QoS profile (default %(default)s: reliable)")
+    p.add_argument("--depth", type=number(int, low=1, high=1_000_000), default=1000,
+                   help="subscriber history (keep-last) depth; deep so a slow start loses nothing (default %(default)s)")
+    p.add_argument("--count", type=number(int, low=0), default=0, help="stop after this many messages (0: no limit)")
+    p.add_argument("--duration", type=number(float, low=0, high=4e9), default=0.0, help="stop after this many seconds (0: no limit)")
+    p.add_argument("--idle", type=number(float, low=0, high=4e9), default=0.0,
+                   help="stop when nothing arrives for this many seconds, counted from the start "
+                        "until the first message (0: no limit)")
+    p.add_argument("--png", help="write the event image of everything received")
+    p.add_argument("--save-events", help="write the decoded events (.npz: t, x, y, p, width, height)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing --png / --save-events files")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.set_defaults(func=_cmd_echo)

@@ -1,0 +1,126 @@
+"""`evdnerf sync`, `convert`, `import-evdnerf`: from a session to a training set."""
+
+from __future__ import annotations
+
+import json
+
+from ..errors import EvdnerfError
+from .common import number
+
+
+
+def _cmd_sync(args) -> int:
+    from ..session.sync import run_sync
+    from ..units import parse_duration_ns
+
+    extra = {k: v for k, v in (("events_topic", args.events_topic),
+                               ("trigger_topic", args.trigger_topic)) if v is not None}
+    result = run_sync(args.session, bin_ns=parse_duration_ns(args.bin, name="--bin"),
+                      method=args.method, reference_view=args.reference,
+                      refine=not args.no_refine, plot_path=args.plot, overwrite=args.overwrite,
+                      log=None if args.json else print, **extra)
+    if args.json:
+        print(json.dumps(result, indent=2, default=str))
+    return 0
+
+
+def _cmd_convert(args) -> int:
+    from ..session.convert import run_convert
+    from ..units import parse_duration_ns
+
+    if (args.start is None) != (args.end is None):
+        raise EvdnerfError("--start and --end go together (or leave both out for the automatic "
+                           "motion window)")
+    window = None
+    if args.start is not None:
+        window = (parse_duration_ns(args.start, name="--start"),
+                  parse_duration_ns(args.end, name="--end"))
+    run_convert(args.session, args.output, fmt=args.format, window=window,
+                downsample=args.downsample, offsets=args.offsets, poses=args.poses,
+                intrinsics=args.intrinsics, frames=not args.no_frames,
+                compression=args.compression, n_windows=args.n_windows,
+                event_time=args.event_time, raw_events=not args.no_raw_events,
+                overwrite=args.overwrite)
+    return 0
+
+
+def _cmd_import_evdnerf(args) -> int:
+    from ..io.evdnerf_format import run_import_evdnerf
+
+    run_import_evdnerf(args.source, args.output, c_pos=args.c_pos, c_neg=args.c_neg,
+                       overwrite=args.overwrite)
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("sync", help="align the views' clocks of a session",
+                       description="Find each view's motion onset in its own clock: from "
+                                   "EXT_TRIGGER edges in the event stream (exact), the firmware's "
+                                   "START TimeReference, or the event-rate curve (robust onset "
+                                   "with hot-pixel removal, refined by cross-correlating rate "
+                                   "curves at 100 us). Writes the offsets into session.yaml "
+                                   "(never the bags), reports how far the methods disagree and "
+                                   "saves a plot of the aligned rate curves. Rate-based sync "
+                                   "needs a sudden motion onset.")
+    p.add_argument("session", help="session folder")
+    p.add_argument("--bin", default="1ms", help="event-rate bin (default %(default)s)")
+    p.add_argument("--method", choices=["auto", "trigger", "start", "rate", "onset"],
+                   default="auto", help="force one method (default: the best each view has)")
+    p.add_argument("--reference", help="reference view for refinement (default: first training view)")
+    p.add_argument("--no-refine", action="store_true", help="skip the cross-correlation refinement")
+    p.add_argument("--plot", help="aligned rate plot path (default SESSION/sync.png)")
+    p.add_argument("--events-topic", help="event topic (default from session.yaml)")
+    p.add_argument("--trigger-topic", help="servo START/DONE topic (default from session.yaml)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing --plot file (SESSION/sync.png, the default, is the session's own "
+                        "and always replaced; a folder never is)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.set_defaults(func=_cmd_sync)
+
+    p = sub.add_parser("convert", help="turn a synced session into a training set",
+                       description="Decode every view, apply the sync offsets (t = 0 at the "
+                                   "common motion onset), crop the time window, optionally sum "
+                                   "2x2 pixel blocks, and write TRAIN.h5 (chunked, compressed, "
+                                   "with a 1 ms time index per view) or, with --format evdnerf, "
+                                   "the EvDNeRF paper's transforms_*.json + data_frames_*.npy.")
+    p.add_argument("session", help="session folder (session.yaml + one bag per view)")
+    p.add_argument("-o", "--output", required=True, help="TRAIN.h5 or, for --format evdnerf, a folder")
+    p.add_argument("--format", choices=["h5", "evdnerf"], default="h5", help="output format (default h5)")
+    p.add_argument("--start", help="window start in the synced clock, e.g. 0 or --start=-50ms "
+                                   "(with --end; default: the motion window)")
+    p.add_argument("--end", help="window end in the synced clock, e.g. 1s")
+    p.add_argument("--downsample", type=int, choices=[1, 2], default=1,
+                   help="2: sum events over 2x2 pixel blocks, as the paper does (default 1)")
+    p.add_argument("--offsets", choices=["sync", "ground-truth"], default="sync",
+                   help="clock offsets from `evdnerf sync` (default) or, for simulated sessions, "
+                        "the injected ground truth")
+    p.add_argument("--poses", choices=["auto", "session", "topic"], default="auto",
+                   help="camera poses from session.yaml (static) or the pose topic (moving camera)")
+    p.add_argument("--intrinsics", choices=["camera_info", "session"], default="camera_info",
+                   help="intrinsics from each bag's CameraInfo (checked against session.yaml) "
+                        "or from session.yaml")
+    p.add_argument("--no-frames", action="store_true", help="leave out the blurred frames")
+    p.add_argument("--compression", choices=["scaleoffset", "gzip"], default="scaleoffset",
+                   help="lossless HDF5 filter: scaleoffset (fast) or gzip (smaller)")
+    p.add_argument("--n-windows", type=number(int, low=1, high=100_000), default=32,
+                   help="--format evdnerf: event frames per view, 1..100000 (default %(default)s)")
+    p.add_argument("--event-time", choices=["normalized", "ns"], default="normalized",
+                   help="--format evdnerf: time column of their event arrays")
+    p.add_argument("--no-raw-events", action="store_true",
+                   help="--format evdnerf: leave out their per-view (N, 4) event arrays")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=_cmd_convert)
+
+    p = sub.add_parser("import-evdnerf", help="read a dataset in the EvDNeRF paper's format",
+                       description="Read transforms_{train,val}.json + data_frames_*.npy (and "
+                                   "per-view event arrays when present) into our TRAIN.h5, "
+                                   "converting Blender/OpenGL poses to OpenCV axes. Their event "
+                                   "files may be pickles: import only datasets you trust.")
+    p.add_argument("source", help="dataset folder")
+    p.add_argument("-o", "--output", required=True, help="TRAIN.h5")
+    p.add_argument("--c-pos", type=number(float, low=0, low_open=True, high=10),
+                   help="C+ if the dataset does not say, in (0, 10]")
+    p.add_argument("--c-neg", type=number(float, low=0, low_open=True, high=10),
+                   help="C- if the dataset does not say, in (0, 10]")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=_cmd_import_evdnerf)
