@@ -32,7 +32,7 @@ from evdnerf_ros.sim.generator import EventGenerator  # noqa: E402
 from evdnerf_ros.sim.render import SceneRenderer  # noqa: E402
 from evdnerf_ros.sim.sampling import simulate_renderer  # noqa: E402
 from evdnerf_ros.sim.scene import load_scene  # noqa: E402
-from evdnerf_ros.sim.session import SimulationOptions, simulate_session  # noqa: E402
+from evdnerf_ros.sim.simulate import SimulationOptions, simulate_session  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

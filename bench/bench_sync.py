@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from evdnerf_ros.session.sync import SyncOptions, sync_session  # noqa: E402
 from evdnerf_ros.sim.perturb import perturb_session  # noqa: E402
 from evdnerf_ros.sim.scene import preset_path  # noqa: E402
-from evdnerf_ros.sim.session import SimulationOptions, simulate_session  # noqa: E402
+from evdnerf_ros.sim.simulate import SimulationOptions, simulate_session  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 BINS_NS = [10_000_000, 5_000_000, 2_000_000, 1_000_000, 500_000, 200_000, 100_000, 50_000]

@@ -55,7 +55,7 @@ RUNS = {
 
 def build_set(work: Path, quick: bool) -> Path:
     from evdnerf_ros.session.convert import run_convert
-    from evdnerf_ros.sim.session import SimulationOptions, simulate_session
+    from evdnerf_ros.sim.simulate import SimulationOptions, simulate_session
 
     out = work / "jet-down.h5"
     if out.exists():

@@ -32,7 +32,7 @@ def tiny_train_h5(tmp_path_factory):
     """A tiny training set (fork, 32x32 with 2x2 supersampling, 4 training + 2 validation views
     + 1 moving validation view, 20 Hz blurred frames, ground-truth offsets), built once."""
     from evdnerf_ros.session.convert import run_convert
-    from evdnerf_ros.sim.session import SimulationOptions, simulate_session
+    from evdnerf_ros.sim.simulate import SimulationOptions, simulate_session
 
     tmp = tmp_path_factory.mktemp("tiny_train")
     simulate_session("fork", tmp / "s", SimulationOptions(

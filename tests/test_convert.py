@@ -15,7 +15,7 @@ from evdnerf_ros.io.typestore import ros2_typestore
 from evdnerf_ros.session.convert import (ConvertOptions, convert_session, detect_motion_end, downsample_K,
                                          run_convert)
 from evdnerf_ros.session.layout import SESSION_FORMAT, SESSION_FORMAT_VERSION, load_session
-from evdnerf_ros.sim.session import SimulationOptions, simulate_session
+from evdnerf_ros.sim.simulate import SimulationOptions, simulate_session
 
 OPTS = SimulationOptions(views=2, val_views=1, resolution=(48, 36), frame_rate_hz=10, blur_samples=2, gt_times=0,
                          supersample=1, jobs=1, min_step_ns=2_000_000)

@@ -232,3 +232,26 @@ def test_bad_inputs(tmp_path):
     with pytest.raises(InputError, match="neither raw events"):
         import_evdnerf(out, tmp_path / "x.h5", **QUIET)
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_export_takes_training_sets_only_and_io_never_imports_session(tmp_path):
+    """The io layer exports a training set; turning a session into one is session/convert's
+    job (no import circle between io/evdnerf_format.py and session/convert.py)."""
+    import ast
+    from pathlib import Path
+
+    import evdnerf_ros.io as io_pkg
+
+    (tmp_path / "sess").mkdir()
+    (tmp_path / "sess" / "session.yaml").write_text("format: evdnerf-rig-session\n")
+    with pytest.raises(InputError, match="capture session, not a training set.*--format evdnerf"):
+        export_evdnerf(tmp_path / "sess", tmp_path / "out", **QUIET)
+    assert not (tmp_path / "out").exists()
+    offenders = []
+    for path in Path(io_pkg.__file__).parent.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                mod = ("." * node.level) + (node.module or "")
+                if mod.lstrip(".").split(".")[0] == "session" or "evdnerf_ros.session" in mod:
+                    offenders.append(f"{path.name}: {mod}")
+    assert offenders == []

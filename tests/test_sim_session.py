@@ -14,8 +14,8 @@ from evdnerf_ros.sim.generator import EventGenerator
 from evdnerf_ros.sim.motion import image_travel
 from evdnerf_ros.sim.render import SceneRenderer
 from evdnerf_ros.sim.sampling import simulate_renderer
-from evdnerf_ros.sim.scene import load_scene
-from evdnerf_ros.sim.session import SimulationOptions, _view_tasks, simulate_session
+from evdnerf_ros.sim.scene import load_scene, preset_path
+from evdnerf_ros.sim.simulate import SimulationOptions, _view_tasks, simulate_session
 
 OPTS = SimulationOptions(views=2, val_views=1, resolution=(32, 24), frame_rate_hz=10,
                          blur_samples=2, gt_times=2, supersample=1, jobs=1,
@@ -197,3 +197,59 @@ def test_event_counts_do_not_depend_on_max_step(tmp_path):
     assert fine.sum() > 1000
     for max_step in ("1s", "100ms"):
         assert np.abs(counts[max_step] - fine).sum() <= 0.001 * fine.sum(), max_step
+
+
+def test_validation_views_follow_views(tmp_path):
+    """`--views 6` used to render the scene's 18 validation views: without --val-views there
+    are as many validation views as training views, at most the scene's own number."""
+    from dataclasses import replace
+
+    scene = load_scene("jet-down")                     # an 18-view ring, validation_views unset
+    def counts(**kw):
+        tasks = _view_tasks(scene, replace(OPTS, **{"views": None, "val_views": None, **kw}))
+        return sum(t.split == "train" for t in tasks), sum(t.split == "val" for t in tasks)
+    assert counts() == (18, 18)
+    assert counts(views=6) == (6, 6)
+    assert counts(views=6, val_views=2) == (6, 2)
+    assert counts(views=6, val_views=0) == (6, 0)
+    assert counts(views=30) == (30, 18)               # capped by the scene's ring
+    val = [t for t in _view_tasks(scene, replace(OPTS, views=6, val_views=None)) if t.split == "val"]
+    assert [t.azimuth_deg for t in val] == pytest.approx([10.0 + 60.0 * k for k in range(6)])
+    # A scene that names its validation views caps at that number.
+    data = yaml.safe_load(open(preset_path("jet-down")).read())
+    data["cameras"]["ring"]["validation_views"] = 4
+    path = tmp_path / "jet4.yaml"
+    path.write_text(yaml.safe_dump(data))
+    scene4 = load_scene(str(path))
+    tasks = _view_tasks(scene4, replace(OPTS, views=6, val_views=None))
+    assert sum(t.split == "val" for t in tasks) == 4
+    tasks = _view_tasks(scene4, replace(OPTS, views=2, val_views=None))
+    assert sum(t.split == "val" for t in tasks) == 2
+    # ... and the CLI writes what it plans.
+    out = tmp_path / "s"
+    assert main(["simulate", "jet-down", "-o", str(out), "--views", "3", "--resolution", "8", "8",
+                 "--supersample", "1", "--frame-rate", "0", "--gt-times", "0", "--jobs", "1",
+                 "--min-step", "50ms", "--max-step", "100ms"]) == 0
+    names = [v["name"] for v in yaml.safe_load((out / "session.yaml").read_text())["views"]]
+    assert names == ["view_00", "view_01", "view_02", "val_00", "val_01", "val_02"]
+
+
+def test_session_written_by_simulate_reads_back(fork_session):
+    """What simulate writes through the recorder is what the reader returns, key for key."""
+    from evdnerf_ros.session.layout import load_session
+
+    out, session = fork_session
+    s = load_session(out)
+    assert s.data == session
+    assert (s.width, s.height) == (32, 24) and s.c_pos == OPTS.c_pos and s.eps == OPTS.eps
+    assert s.servo["trigger"] == "/rig/servo/trigger" and s.servo["joint_states"] == "/rig/servo/joint_states"
+    assert session["camera"]["topics"] == {"events": "/event_camera/events",
+                                           "camera_info": "/event_camera/camera_info",
+                                           "pose": "/rig/camera_pose"}
+    for v, rec in zip(s.views, session["views"]):
+        assert v.name == rec["name"] and v.bag == out / rec["bag"] and v.split == rec["split"]
+        np.testing.assert_array_equal(v.T_world_cam, np.array(rec["T_world_cam"]))
+        assert v.frames == out / rec["frames"] and v.ground_truth == rec["ground_truth"]
+        with open_bag(v.bag) as bag:
+            assert set(bag.topics) == {"/event_camera/events", "/event_camera/camera_info",
+                                       "/rig/camera_pose", "/rig/servo/joint_states", "/rig/servo/trigger"}

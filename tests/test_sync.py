@@ -14,10 +14,10 @@ from evdnerf_ros.io.messages import time_reference
 from evdnerf_ros.io.rosbag2 import BagWriter, open_bag, read_events
 from evdnerf_ros.session.layout import load_session
 from evdnerf_ros.sim.perturb import perturb_session
-from evdnerf_ros.session.sync import (correlate_onsets, detect_onset, hot_pixels,
-                                      run_sync)
+from evdnerf_ros.session.onset import correlate_onsets, detect_onset, hot_pixels
+from evdnerf_ros.session.sync import run_sync
 from evdnerf_ros.sim.scene import preset_path
-from evdnerf_ros.sim.session import SimulationOptions, simulate_session
+from evdnerf_ros.sim.simulate import SimulationOptions, simulate_session
 
 SIM = SimulationOptions(views=3, val_views=1, resolution=(48, 36), frame_rate_hz=0, gt_times=0,
                         supersample=1, jobs=1, min_step_ns=2_000_000)
@@ -50,8 +50,9 @@ def fork(tmp_path_factory):
 @pytest.fixture(scope="module")
 def jet(tmp_path_factory):
     """Jet-Down with a quiet lead-in (the preset starts moving at t = 0, i.e. when the
-    recording starts, and a recording must begin before the motion): no servo, so sync can
-    only use the event rate."""
+    recording starts, and a recording must begin before the motion), recorded by a rig
+    without a trigger cable (the simulator's trigger edges dropped) and without a servo, so
+    sync can only use the event rate."""
     base = tmp_path_factory.mktemp("sync")
     scene = yaml.safe_load(Path(preset_path("jet-down")).read_text())
     scene["time"] = {"start_s": 0.0, "end_s": 1.25}
@@ -60,9 +61,8 @@ def jet(tmp_path_factory):
             kf["t_s"] = round(kf["t_s"] + 0.15, 6)
     path = base / "jet-down-lead.yaml"
     path.write_text(yaml.safe_dump(scene))
-    out = base / "jet"
-    simulate_session(str(path), out, SIM, log=lambda *_: None)
-    return out
+    simulate_session(str(path), base / "jet_trigger", SIM, log=lambda *_: None)
+    return perturb_session(base / "jet_trigger", base / "jet", drop_triggers=True)
 
 
 @pytest.fixture(scope="module")
@@ -267,8 +267,8 @@ def test_missing_events_topic_is_named(fork, tmp_path):
 
 
 @pytest.mark.parametrize("kw,match", [
-    (dict(method="best"), "--method"), (dict(bin_ns=0), "bin-ns"), (dict(k=float("nan")), "k must"),
-    (dict(min_correlation=2.0), "min-correlation"),
+    (dict(method="best"), "sync: --method"), (dict(bin_ns=0), "sync: --bin"), (dict(k=float("nan")), "sync: k:"),
+    (dict(min_correlation=2.0), "sync: min_correlation"),
 ])
 def test_bad_options(fork, kw, match):
     with pytest.raises(InputError, match=match):
@@ -390,3 +390,32 @@ def _replace_events(session_dir, view, *, keep_servo):
                          triggers=stream.triggers if keep_servo else None)
     shutil.rmtree(bag_dir)
     tmp.rename(bag_dir)
+
+
+def test_every_simulated_session_syncs_by_its_trigger(tmp_path, capsys):
+    """`evdnerf simulate jet-down` (no servo, moving from t = 0) used to make a session that
+    `evdnerf sync` could not align (no onset, no trigger): the virtual camera now records an
+    EXT_TRIGGER pulse at the start of the motion in every view, as a rig's trigger cable does."""
+    from evdnerf_ros.cli import main
+    from evdnerf_ros.sim.scene import load_scene
+
+    out = tmp_path / "jet"
+    assert main(["simulate", "jet-down", "-o", str(out), "--views", "2", "--resolution", "16", "16",
+                 "--supersample", "1", "--frame-rate", "0", "--gt-times", "0", "--jobs", "1",
+                 "--min-step", "5ms", "--max-step", "20ms"]) == 0
+    data = yaml.safe_load((out / "session.yaml").read_text())
+    assert data["servo"] is None and len(data["views"]) == 4           # 2 training + 2 validation
+    m0 = load_scene("jet-down").motion_span_ns()[0]
+    for v in data["views"]:
+        off = v["ground_truth"]["clock_offset_ns"]
+        tr = read_events(out / v["bag"]).triggers
+        assert tr["t"].tolist() == [(m0 + off) // US * US, (m0 + 1_000_000 + off) // US * US]
+        assert tr["value"].tolist() == [1, 0] and v["trigger_events"] == 2
+    capsys.readouterr()
+    assert main(["sync", str(out)]) == 0
+    synced = yaml.safe_load((out / "session.yaml").read_text())
+    assert synced["sync"]["methods_used"] == ["trigger"]
+    gt = {v["name"]: v["ground_truth"]["clock_offset_ns"] for v in synced["views"]}
+    off = {v["name"]: v["sync"]["offset_ns"] for v in synced["views"]}
+    ref = synced["sync"]["reference_view"]
+    assert all(abs((off[n] - off[ref]) - (gt[n] - gt[ref])) < US for n in gt), (off, gt)

@@ -124,21 +124,16 @@ def from_file_time(c: np.ndarray, t_start: int, t_end: int, mode: str) -> np.nda
 # --------------------------------------------------------------------------- export
 
 
-def _open_source(source, convert_options, log):
-    """(TrainingSet, cleanup) for a TrainingSet, a .h5 path or a session folder."""
+def _open_source(source):
+    """(TrainingSet, cleanup) for a TrainingSet or a training-set .h5 path. A session folder
+    is refused: converting sessions is the session layer's job (io never imports it)."""
     if isinstance(source, TrainingSet):
         return source, None
     p = Path(source)
     if p.is_dir() and (p / "session.yaml").is_file():
-        import tempfile
-
-        from ..session.convert import ConvertOptions, convert_session
-
-        td = tempfile.TemporaryDirectory(prefix=".evdnerf-export.")
-        h5 = Path(td.name) / "train.h5"
-        convert_session(p, h5, ConvertOptions(**(convert_options or {})), log=log)
-        ts = TrainingSet(h5)
-        return ts, lambda: (ts.close(), td.cleanup())
+        raise InputError(f"{p}: is a capture session, not a training set; export it with "
+                         "`evdnerf convert SESSION -o OUT --format evdnerf` (or "
+                         "evdnerf_ros.session.convert.run_convert(..., fmt='evdnerf'))")
     ts = TrainingSet(p)
     return ts, ts.close
 
@@ -172,16 +167,16 @@ def _save_png_grey(path: Path, img: np.ndarray) -> None:
 
 def export_evdnerf(source, out_dir, *, n_windows: int = 32, event_time: str = "normalized",
                    events: bool = True, images: bool = True, overwrite: bool = False,
-                   convert_options: dict | None = None, log=print) -> dict:
-    """Write the paper's format for a TrainingSet, a training-set .h5 or a session folder
-    (converted first with ``convert_options``, the fields of ConvertOptions). `n_windows`
-    windows of equal length span the set's time range: T = n_windows + 1 timesteps per view.
-    Returns a summary; the folder appears atomically."""
+                   log=print) -> dict:
+    """Write the paper's format for a TrainingSet or a training-set .h5 (a session is
+    converted to one first by :func:`evdnerf_ros.session.convert.run_convert`, which then
+    calls this). `n_windows` windows of equal length span the set's time range:
+    T = n_windows + 1 timesteps per view. Returns a summary; the folder appears atomically."""
     if isinstance(n_windows, bool) or not isinstance(n_windows, (int, np.integer)) or n_windows < 1:
         raise InputError(f"export: n_windows must be an integer >= 1, got {n_windows!r}")
     if event_time not in EVENT_TIMES:
         raise InputError(f"export: event_time {event_time!r} is not one of {list(EVENT_TIMES)}")
-    ts, cleanup = _open_source(source, convert_options, log)
+    ts, cleanup = _open_source(source)
     try:
         return _export(ts, Path(out_dir), int(n_windows), event_time, events, images, overwrite, log)
     finally:

@@ -75,10 +75,11 @@ from ..io.guard import OutputWriteError, check_free_space
 from ..limits import check_memory
 from ..geometry.poses import check_rigid
 from ..io.trainingset import COMPRESSIONS, TrainingSetWriter
+from ..topics import CAMERA_INFO, CAMERA_POSE, EVENTS
 from .layout import Session, ViewRecord, load_session, session_yaml_path
 
-DEFAULT_TOPICS = {"events": "/event_camera/events", "camera_info": "/event_camera/camera_info",
-                  "pose": "/rig/camera_pose"}
+#: The topics convert reads, by role (session.yaml's camera.topics may name others).
+DEFAULT_TOPICS = {"events": EVENTS, "camera_info": CAMERA_INFO, "pose": CAMERA_POSE}
 OFFSET_SOURCES = ("sync", "ground-truth")
 POSE_SOURCES = ("auto", "session", "topic")
 INTRINSICS_SOURCES = ("camera_info", "session")

@@ -1,4 +1,4 @@
-"""The capture-session layout (DESIGN.md), read and written in one place.
+"""The capture-session layout (DESIGN.md): the reader and the schema of session.yaml.
 
 ```
 <session>/session.yaml    format, camera, thresholds, rig, per-view records (below)
@@ -10,7 +10,14 @@ OpenCV axes, metres), optional `frames` (blurred frames .npz), optional `ground_
 `evdnerf sync` has run: `offset_ns` (the view clock's reading at the common time origin, so
 that `t_common = t_view - offset_ns`), `method`, `confidence` and per-method estimates.
 
-session.yaml is rewritten atomically; bags are never modified.
+A moving view also has `moving_arc_deg` (the azimuth its camera sweeps; None for a static
+view) and its pose topic carries the trajectory.
+
+The one writer of this layout is :mod:`evdnerf_ros.session.recorder` (per-view bags and
+session.yaml); it checks every session.yaml it writes with :func:`check_session`, the same
+schema :func:`load_session` applies, so a document the reader would refuse is never written.
+session.yaml is rewritten atomically; bags are never modified. Topic names:
+:mod:`evdnerf_ros.topics`.
 """
 
 from __future__ import annotations
@@ -21,12 +28,12 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..atomic import atomic_output
 from ..errors import InputError
 from ..geometry.poses import check_rigid
 from ..io.guard import read_text
 from ..limits import check_number
 from ..io.trainingset import C_MAX, T_LIMIT
+from ..topics import EVENTS, SERVO_TRIGGER
 
 SESSION_FORMAT = "evdnerf-rig-session"
 SESSION_FORMAT_VERSION = 1
@@ -67,30 +74,18 @@ class Session:
         raise InputError(f"{self.root}: no view {name!r}; views: {', '.join(v.name for v in self.views)}")
 
 
-DEFAULT_EVENTS_TOPIC = "/event_camera/events"
-DEFAULT_TRIGGER_TOPIC = "/rig/servo/trigger"
-
-
 def session_topics(session: "Session", events_topic: str | None = None,
                    trigger_topic: str | None = None) -> tuple[str, str]:
     """(events topic, servo START/DONE topic): given ones, else session.yaml's, else defaults."""
     cam = session.data.get("camera") or {}
-    ev = events_topic or (cam.get("topics") or {}).get("events") or DEFAULT_EVENTS_TOPIC
+    ev = events_topic or (cam.get("topics") or {}).get("events") or EVENTS
     servo = session.data.get("servo") or {}
-    tr = trigger_topic or servo.get("trigger") or DEFAULT_TRIGGER_TOPIC
+    tr = trigger_topic or servo.get("trigger") or SERVO_TRIGGER
     return str(ev), str(tr)
 
 
 def session_yaml_path(root) -> Path:
     return Path(root) / "session.yaml"
-
-
-def write_session_yaml(root, data: dict, *, overwrite: bool = False) -> Path:
-    """Write (or atomically replace, with overwrite=True) `<root>/session.yaml`."""
-    path = session_yaml_path(root)
-    with atomic_output(path, overwrite=overwrite) as tmp:
-        tmp.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
 
 
 def load_session(root) -> Session:
@@ -105,6 +100,14 @@ def load_session(root) -> Session:
                          "or the capture node writes")
     data = _parse_yaml(path)
     return _check_session(root, path, data)
+
+
+def check_session(root, data, *, path=None) -> Session:
+    """Validate a parsed session.yaml document `data` of the session folder `root` with the
+    reader's schema (the check :func:`load_session` applies); errors name `path` (default
+    ``<root>/session.yaml``) and the key at fault. Returns the Session it describes."""
+    root = Path(root)
+    return _check_session(root, Path(path) if path is not None else session_yaml_path(root), data)
 
 
 def _parse_yaml(path: Path):

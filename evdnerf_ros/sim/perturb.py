@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_output
-from ..session.layout import load_session, session_topics, write_session_yaml
+from ..session.layout import load_session, session_topics
+from ..session.recorder import write_session_yaml
 
 
 def perturb_session(src, dst, *, noise_hz: float = 0.0, hot: int = 0, hot_rate_hz: float = 1000.0,

@@ -9,15 +9,33 @@ clock:
 <session>/session.yaml             scene, camera, thresholds, per-view pose / angle / split,
                                    and the injected clock offsets as ground truth
 <session>/view_00/ ...             one rosbag2 (MCAP) per view:
-    /event_camera/events             event_camera_msgs/msg/EventPacket (evt3; EXT_TRIGGER
-                                     edges at servo start for servo scenes)
+    /event_camera/events             event_camera_msgs/msg/EventPacket (evt3, with an
+                                     EXT_TRIGGER pulse at the start of the scene's motion)
     /event_camera/camera_info        sensor_msgs/msg/CameraInfo
-    /rig/camera_pose                 geometry_msgs/msg/PoseStamped (static camera)
+    /rig/camera_pose                 geometry_msgs/msg/PoseStamped (static camera: one;
+                                     a moving view: its trajectory at 1 kHz)
     /rig/servo/joint_states          sensor_msgs/msg/JointState (servo scenes, 50 Hz)
     /rig/servo/trigger               sensor_msgs/msg/TimeReference START / DONE (servo scenes)
 <session>/frames/<view>.npz        motion-blurred grey frames (the DNeRF baseline's input)
 <session>/ground_truth/<view>.npz  intensity and depth at chosen times (scene clock)
 ```
+
+Everything is written through :mod:`evdnerf_ros.session.recorder` (the one writer of the
+session layout; topic names from :mod:`evdnerf_ros.topics`).
+
+Views: ``--views N`` training views on the scene's ring (default: the ring's), and
+validation views offset by ``validation_offset_deg``: ``--val-views M`` of them, or by
+default as many as there are training views, at most the scene's own number of validation
+views (``validation_views``, else its ring's ``views``); without ``--views`` the scene's
+number. So ``--views 6`` on an 18-view scene renders 6 + 6 views, not 6 + 18.
+``--val-views 0`` renders none.
+
+Trigger: like a rig whose trigger cable feeds the camera's EXT_TRIGGER input, every view's
+event stream carries a rising edge at the start of the scene's motion (a servo scene: the
+servo's start, when its board raises trigger-out; any other scene: the first moment
+anything moves) and the falling edge ``TRIGGER_PULSE_NS`` later, in the view's clock on the
+sensor's microsecond tick, so that ``evdnerf sync`` can align every simulated session by
+its trigger. A scene in which nothing moves gets no edge.
 
 Clocks: the scene clock starts at the scene's `time.start_s`. View v's camera clock reads
 `scene time + clock_offset_ns[v]` (drawn from the seed, recorded under `ground_truth` in
@@ -46,12 +64,13 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from .. import __version__
 from ..atomic import atomic_output
 from ..errors import InputError
-from ..limits import check_memory, check_number
+from ..limits import check_memory
+from ..options import check_value, flag_name, option, option_fields
 from ..events.types import empty_triggers, make_triggers
-from ..session.layout import SESSION_FORMAT, SESSION_FORMAT_VERSION, write_session_yaml
+from ..session.recorder import (ViewRecorder, camera_record, servo_record, session_document,
+                                view_record, write_session_yaml)
 from ..geometry.camera import PinholeCamera
 from .generator import EventGenerator
 from ..events.logmap import LOG_EPS
@@ -61,11 +80,6 @@ from .render import SceneRenderer
 from .sampling import simulate_renderer
 from .scene import Scene, load_scene
 
-EVENT_TOPIC = "/event_camera/events"
-CAMERA_INFO_TOPIC = "/event_camera/camera_info"
-POSE_TOPIC = "/rig/camera_pose"
-JOINT_TOPIC = "/rig/servo/joint_states"
-TRIGGER_TOPIC = "/rig/servo/trigger"
 JOINT_STATE_PERIOD_NS = 20_000_000    # servo frame: 50 Hz
 MOVING_POSE_PERIOD_NS = 1_000_000     # a moving view's pose topic: 1 kHz
 TRIGGER_PULSE_NS = 1_000_000          # trigger-out pulse width at motion start
@@ -75,55 +89,54 @@ TRIGGER_PULSE_NS = 1_000_000          # trigger-out pulse width at motion start
 class SimulationOptions:
     """Every knob of `evdnerf simulate` (the CLI flags map one to one).
 
-    Each value has a documented range (OPTION_RANGES, checked by `checked()` before the
+    Each value has a documented range (its field's option, checked by `checked()` before the
     scene is even loaded); what scales with the values (rays per render, blurred frames,
     ground truth, moving-view poses, renders per view) is estimated before anything is
     allocated, and an error names the flag to change.
     """
 
-    views: int | None = None              # training views (None: the scene's ring)
-    val_views: int | None = None          # validation views (None: the scene's ring; 0: none)
-    resolution: tuple[int, int] | None = None  # (width, height); None: the scene's intrinsics
-    seed: int = 0
-    c_pos: float = 0.2
-    c_neg: float = 0.2
-    eps: float = LOG_EPS
-    threshold_sigma: float = 0.0          # per-pixel threshold mismatch (fixed per view seed)
-    refractory_ns: int = 0
-    tolerance_c: float = 0.1              # adaptive sampling: midpoint deviation, units of C
-    min_step_ns: int = 1_000_000         # finest step: edges in rendered images are steps,
-                                          # so the linearity check alone would bisect to it
-    max_step_ns: int = 10_000_000
-    supersample: int = 2
-    frame_rate_hz: float = 30.0           # blurred grey frames; 0 disables them
-    blur_samples: int = 8                 # renders averaged per exposure
-    gt_times: int = 5                     # ground-truth intensity/depth renders per view
-    moving_views: int = 0                 # extra validation views whose camera moves
-    moving_arc_deg: float = 20.0          # azimuth a moving view sweeps over the scene's time
-    max_clock_offset_s: float = 5.0       # injected camera clock offsets in [0, this)
-    jobs: int = 0                         # worker processes; 0: one per CPU (at most views)
+    views: int | None = option(None, "training views", kind=int, low=1, high=10_000,
+                               none_help="the scene's ring")
+    val_views: int | None = option(None, "validation views; 0: none", kind=int, low=0, high=10_000,
+                                   none_help="as many as --views, at most the scene's validation views")
+    resolution: tuple[int, int] | None = option(None, "image size", kind=int, nargs=2, metavar=("W", "H"),
+                                                low=1, high=16_384, none_help="the scene's intrinsics")
+    seed: int = option(0, "clock offsets and noise", low=0, high=2**63 - 1)
+    c_pos: float = option(0.2, "positive contrast threshold C+", low=MIN_THRESHOLD, high=10.0)
+    c_neg: float = option(0.2, "negative contrast threshold C-", low=MIN_THRESHOLD, high=10.0)
+    eps: float = option(LOG_EPS, "log offset: L = log(I + eps), white = 1", low=0.0, high=1.0, low_open=True)
+    threshold_sigma: float = option(0.0, "per-pixel threshold mismatch std (fixed per view seed)",
+                                    flag="--sigma", low=0.0, high=1.0)
+    refractory_ns: int = option(0, "refractory period in ns", low=0, high=10_000_000_000)
+    tolerance_c: float = option(0.1, "adaptive sampling: allowed midpoint deviation from linear, in units of C",
+                                low=0.0, high=10.0, low_open=True)
+    # finest step: edges in rendered images are steps, so the linearity check alone would bisect to it
+    min_step_ns: int = option(1_000_000, "adaptive sampling: finest step", flag="--min-step", duration=True,
+                              low=1_000, high=100_000_000_000)
+    max_step_ns: int = option(10_000_000, "adaptive sampling: coarsest step", flag="--max-step", duration=True,
+                              low=1_000, high=3_600_000_000_000)
+    supersample: int = option(2, "antialiasing: s x s rays per pixel", low=1, high=16)
+    frame_rate_hz: float = option(30.0, "blurred grey frames per second; 0: none", flag="--frame-rate",
+                                  low=0.0, high=100_000.0)
+    blur_samples: int = option(8, "renders averaged per frame exposure", low=1, high=1024)
+    gt_times: int = option(5, "ground-truth intensity/depth renders per view", low=0, high=10_000)
+    moving_views: int = option(0, "extra validation views whose camera sweeps along the ring while the scene "
+                                  "moves; poses at 1 kHz on the pose topic", low=0, high=10_000)
+    moving_arc_deg: float = option(20.0, "azimuth a moving view sweeps over the scene's time",
+                                   low=-3600.0, high=3600.0)
+    max_clock_offset_s: float = option(5.0, "per-view camera clock offsets are drawn in [0, this) seconds",
+                                       flag="--max-clock-offset", low=0.0, high=86_400.0)
+    jobs: int = option(0, "worker processes; 0 = one per CPU (at most one per view)", low=0, high=1024)
 
     def check(self) -> None:
-        """Raise InputError naming the flag of the first value outside OPTION_RANGES."""
+        """Raise InputError naming the flag of the first value outside its documented range."""
         self.checked()
 
     def checked(self) -> "SimulationOptions":
-        """These options with every value range-checked (see OPTION_RANGES) and whole numbers
-        made ints; nothing is allocated before this passes."""
-        values = {}
-        for name, (flag, low, high, low_open, integer) in OPTION_RANGES.items():
-            v = getattr(self, name)
-            values[name] = check_number(v, f"simulate: {flag}", low=low, high=high,
-                                        low_open=low_open, integer=integer,
-                                        allow_none=name in ("views", "val_views"))
-        if self.resolution is not None:
-            res = self.resolution
-            if isinstance(res, (str, bytes)) or not hasattr(res, "__len__") or len(res) != 2:
-                raise InputError(f"simulate: --resolution: expected W H (two whole numbers), "
-                                 f"got {res!r}")
-            values["resolution"] = tuple(
-                check_number(x, f"simulate: --resolution {axis}", low=1, high=MAX_IMAGE_SIDE,
-                             integer=True) for axis, x in zip("WH", res))
+        """These options with every value range-checked (the ranges of their fields) and whole
+        numbers made ints; nothing is allocated before this passes."""
+        values = {f.name: check_value(getattr(self, f.name), f, spec, f"simulate: {flag_name(f, spec)}")
+                  for f, spec in option_fields(SimulationOptions)}
         if values["min_step_ns"] > values["max_step_ns"]:
             raise InputError(f"simulate: --min-step {values['min_step_ns']} ns is longer than "
                              f"--max-step {values['max_step_ns']} ns; make --min-step <= "
@@ -131,29 +144,6 @@ class SimulationOptions:
         return replace(self, **values)
 
 
-#: Documented ranges of SimulationOptions: field -> (CLI flag, low, high, low exclusive,
-#: whole number). views / val_views may also be None (the scene's ring).
-OPTION_RANGES = {
-    "views": ("--views", 1, 10_000, False, True),
-    "val_views": ("--val-views", 0, 10_000, False, True),
-    "seed": ("--seed", 0, 2**63 - 1, False, True),
-    "c_pos": ("--c-pos", MIN_THRESHOLD, 10.0, False, False),
-    "c_neg": ("--c-neg", MIN_THRESHOLD, 10.0, False, False),
-    "eps": ("--eps", 0.0, 1.0, True, False),
-    "threshold_sigma": ("--sigma", 0.0, 1.0, False, False),
-    "refractory_ns": ("--refractory-ns", 0, 10_000_000_000, False, True),
-    "tolerance_c": ("--tolerance-c", 0.0, 10.0, True, False),
-    "min_step_ns": ("--min-step", 1_000, 100_000_000_000, False, True),
-    "max_step_ns": ("--max-step", 1_000, 3_600_000_000_000, False, True),
-    "supersample": ("--supersample", 1, 16, False, True),
-    "frame_rate_hz": ("--frame-rate", 0.0, 100_000.0, False, False),
-    "blur_samples": ("--blur-samples", 1, 1024, False, True),
-    "gt_times": ("--gt-times", 0, 10_000, False, True),
-    "moving_views": ("--moving-views", 0, 10_000, False, True),
-    "moving_arc_deg": ("--moving-arc-deg", -3600.0, 3600.0, False, False),
-    "max_clock_offset_s": ("--max-clock-offset", 0.0, 86_400.0, False, False),
-    "jobs": ("--jobs", 0, 1024, False, True),
-}
 #: Largest --resolution side (the scene files' intrinsics allow the same).
 MAX_IMAGE_SIDE = 16384
 #: Renders one view may plan (grid steps of the adaptive sampler, blurred-frame samples):
@@ -211,10 +201,19 @@ def simulate_session(scene_ref, out_dir, options: SimulationOptions = Simulation
     return session
 
 
-def _n_views(scene: Scene, options: SimulationOptions) -> int:
+def _view_counts(scene: Scene, options: SimulationOptions) -> tuple[int, int]:
+    """(training views, validation views): --views, else the ring's; --val-views, else as
+    many as training views, at most the scene's validation views (module doc)."""
     ring = scene.cameras.ring
+    scene_val = ring.validation_views or ring.views
     train = ring.views if options.views is None else options.views
-    val = (ring.validation_views or ring.views) if options.val_views is None else options.val_views
+    if options.val_views is not None:
+        return train, options.val_views
+    return train, scene_val if options.views is None else min(options.views, scene_val)
+
+
+def _n_views(scene: Scene, options: SimulationOptions) -> int:
+    train, val = _view_counts(scene, options)
     return train + val + options.moving_views
 
 
@@ -278,7 +277,8 @@ def _view_tasks(scene: Scene, options: SimulationOptions) -> list[ViewTask]:
     max_offset = int(round(options.max_clock_offset_s * 1e9))
     ring = scene.cameras.ring
     tasks = []
-    rings = [("train", "view", options.views), ("val", "val", options.val_views),
+    n_train, n_val = _view_counts(scene, options)
+    rings = [("train", "view", n_train), ("val", "val", n_val),
              ("moving", "moving", options.moving_views)]
     for kind, prefix, n in rings:
         if kind != "train" and n == 0:
@@ -310,7 +310,7 @@ def _pose_samples(scene: Scene, task: ViewTask) -> list[np.ndarray]:
 
 def _moving_poses(scene: Scene, task: ViewTask) -> tuple[np.ndarray, np.ndarray]:
     """(t (M,) scene ns, T_world_cam (M, 4, 4)): a constant-rate sweep along the ring."""
-    start, end = scene.start_ns, scene.end_ns
+    start = scene.start_ns
     t = np.arange(start, end, MOVING_POSE_PERIOD_NS, dtype=np.int64)
     t = np.append(t, np.int64(end))
     frac = (t - start) / float(max(1, end - start))
@@ -442,14 +442,12 @@ def _simulate_view(scene: Scene, camera: PinholeCamera, task: ViewTask,
                    options: SimulationOptions, out: Path) -> ViewResult:
     """One view: events, bag, blurred frames and ground truth (runs in a worker process)."""
     from ..events.codecs import quantize_to_us
-    from ..io.messages import camera_info, joint_state, pose_stamped, time_reference
-    from ..io.rosbag2 import BagWriter
 
     t0 = time.perf_counter()
     renderer = SceneRenderer(scene, camera, options.supersample)
     track = _moving_poses(scene, task) if task.arc_deg != 0.0 else None
     pose_at = _pose_function(task, track)
-    start, end = scene.start_ns, scene.end_ns
+    start = scene.start_ns
     span = scene.motion_span_ns()
     m0, m1 = (start, start) if span is None else (max(start, span[0]), min(end, span[1]))
     if task.arc_deg != 0.0:                  # a moving camera sees change all the time
@@ -481,46 +479,27 @@ def _simulate_view(scene: Scene, camera: PinholeCamera, task: ViewTask,
     events["t"] += task.clock_offset_ns
     events = quantize_to_us(events)
     servos = _servo_objects(scene)
-    triggers = empty_triggers()
     servo_times = []
     if servos:
         drive = servos[0].servo
-        t_start_servo = drive.start_ns
-        t_done_servo = drive.start_ns + drive.profile.duration_ns
-        servo_times = [(t_start_servo, "START"), (t_done_servo, "DONE")]
-        edges = [(t_start_servo, 1), (t_start_servo + TRIGGER_PULSE_NS, 0)]
-        edges = [(t, v) for t, v in edges if start <= t <= end]
-        if edges:
-            tt = np.array([t for t, _ in edges], np.int64) + task.clock_offset_ns
-            triggers = make_triggers(tt - tt % 1000, np.zeros(len(edges)), [v for _, v in edges])
+        servo_times = [(drive.start_ns, "START"), (drive.start_ns + drive.profile.duration_ns, "DONE")]
+    triggers = _trigger_edges(scene, task)
 
-    bag_path = out / task.name
-    rec_start = start + task.clock_offset_ns
-    with BagWriter(bag_path) as bag:
-        bag.write(CAMERA_INFO_TOPIC, "sensor_msgs/msg/CameraInfo",
-                  camera_info(camera.width, camera.height, _K(camera), stamp_ns=rec_start),
-                  rec_start)
+    off = task.clock_offset_ns
+    rec_start = start + off
+    with ViewRecorder(out / task.name, width=camera.width, height=camera.height) as rec:
+        rec.camera_info(_K(camera), stamp_ns=rec_start)
         if track is None:
-            bag.write(POSE_TOPIC, "geometry_msgs/msg/PoseStamped",
-                      pose_stamped(task.T_world_cam, rec_start, "world"), rec_start)
+            rec.pose(task.T_world_cam, rec_start)
         else:
-            for t_scene, T in zip(*track):
-                stamp = int(t_scene) + task.clock_offset_ns
-                bag.write(POSE_TOPIC, "geometry_msgs/msg/PoseStamped",
-                          pose_stamped(T, stamp, "world"), stamp)
+            rec.poses(track[0] + off, track[1])
         for t_scene, what in servo_times:
-            stamp = t_scene + task.clock_offset_ns
-            device = t_scene + task.device_offset_ns
-            bag.write(TRIGGER_TOPIC, "sensor_msgs/msg/TimeReference",
-                      time_reference(stamp, device - device % 1000, f"rig_servo {what}"), stamp)
+            device = t_scene + task.device_offset_ns       # the board's micros(): whole µs
+            rec.servo_trigger(what, t_scene + off, device - device % 1000)
         for drive_obj in servos[:1]:
             for t_scene in range(start, end + 1, JOINT_STATE_PERIOD_NS):
-                stamp = t_scene + task.clock_offset_ns
-                angle = drive_obj.servo.angle_rad(t_scene)
-                bag.write(JOINT_TOPIC, "sensor_msgs/msg/JointState",
-                          joint_state([drive_obj.name], [angle], stamp_ns=stamp), stamp)
-        bag.write_events(EVENT_TOPIC, events, width=camera.width, height=camera.height,
-                         encoding="evt3", triggers=triggers if len(triggers) else None)
+                rec.servo_joint_state([drive_obj.name], [drive_obj.servo.angle_rad(t_scene)], t_scene + off)
+        rec.events(events, triggers)
 
     renders += _write_frames(renderer, pose_at, scene, (m0, m1), task, options,
                              out / "frames" / f"{task.name}.npz")
@@ -530,13 +509,33 @@ def _simulate_view(scene: Scene, camera: PinholeCamera, task: ViewTask,
                       time.perf_counter() - t0, stats)
 
 
+def _trigger_edges(scene: Scene, task: ViewTask) -> np.ndarray:
+    """The view's EXT_TRIGGER pulse (module doc): rising at the start of the scene's motion
+    (a servo scene: the servo's start), falling TRIGGER_PULSE_NS later, edges outside the
+    scene's time dropped; in the view's clock, on the sensor's microsecond tick."""
+    servos = _servo_objects(scene)
+    if servos:
+        t_on = servos[0].servo.start_ns
+    else:
+        span = scene.motion_span_ns()
+        if span is None:
+            return empty_triggers()
+        t_on = span[0]
+    edges = [(t, v) for t, v in ((t_on, 1), (t_on + TRIGGER_PULSE_NS, 0))
+             if scene.start_ns <= t <= scene.end_ns]
+    if not edges:
+        return empty_triggers()
+    tt = np.array([t for t, _ in edges], np.int64) + task.clock_offset_ns
+    return make_triggers(tt - tt % 1000, np.zeros(len(edges)), [v for _, v in edges])
+
+
 def _K(camera: PinholeCamera) -> np.ndarray:
     return np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]], np.float64)
 
 
 def _write_frames(renderer, pose_at, scene, motion, task, options, path) -> int:
     """Motion-blurred frames: the mean of `blur_samples` renders over each exposure."""
-    start, end = scene.start_ns, scene.end_ns
+    start = scene.start_ns
     n, period = _frame_count(scene, options.frame_rate_hz)
     if n < 1:
         return 0
@@ -575,7 +574,7 @@ def _write_ground_truth(renderer, pose_at, scene, task, options, path) -> int:
         return 0
     t = np.array([scene.start_ns + ((scene.end_ns - scene.start_ns) * i) // max(1, n - 1)
                   for i in range(n)], np.int64)
-    results = [renderer.render(pose_at(int(ti)), int(ti)) for ti in t]
+    results = [renderer.render_result(pose_at(int(ti)), int(ti)) for ti in t]
     with atomic_output(path) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, t_scene=t, t_view=t + task.clock_offset_ns,
                             intensity=np.stack([r.intensity for r in results]),
@@ -591,47 +590,33 @@ def _session_yaml(scene, scene_ref, camera, options, tasks, results) -> dict:
     views = []
     for task in tasks:
         r = by_name[task.name]
-        views.append({
-            "name": task.name,
-            "bag": task.name,
-            "split": task.split,
-            "azimuth_deg": task.azimuth_deg,
-            "moving_arc_deg": task.arc_deg if task.arc_deg else None,
-            "T_world_cam": np.asarray(task.T_world_cam).tolist(),
-            "events": r.events,
-            "trigger_events": r.triggers,
-            "frames": f"frames/{task.name}.npz" if options.frame_rate_hz else None,
-            "ground_truth": {
+        views.append(view_record(
+            task.name, task.split, task.T_world_cam, azimuth_deg=task.azimuth_deg,
+            moving_arc_deg=task.arc_deg if task.arc_deg else None,
+            events=r.events,
+            trigger_events=r.triggers,
+            frames=f"frames/{task.name}.npz" if options.frame_rate_hz else None,
+            ground_truth={
                 "clock_offset_ns": task.clock_offset_ns,
                 "device_offset_ns": task.device_offset_ns,
                 "file": f"ground_truth/{task.name}.npz" if options.gt_times else None,
             },
-            "simulation": {"renders": r.renders, "seconds": round(r.seconds, 3), **r.stats},
-        })
+            simulation={"renders": r.renders, "seconds": round(r.seconds, 3), **r.stats}))
     ring = scene.cameras.ring
-    return {
-        "format": SESSION_FORMAT,
-        "format_version": SESSION_FORMAT_VERSION,
-        "software_version": __version__,
-        "source": {"kind": "simulation", "scene": scene.name, "scene_ref": str(scene_ref),
-                   "seed": options.seed},
-        "rig": {"kind": "virtual", "ring_radius_m": ring.radius,
-                "elevation_deg": ring.elevation_deg, "look_at": list(map(float, ring.look_at)),
-                "firmware_version": None, "device_serial": "virtual"},
-        "camera": {"width": camera.width, "height": camera.height, "K": _K(camera).tolist(),
-                   "distortion_model": "plumb_bob", "D": [0.0] * 5,
-                   "topics": {"events": EVENT_TOPIC, "camera_info": CAMERA_INFO_TOPIC,
-                              "pose": POSE_TOPIC}},
-        "servo": ({"joint": servos[0].name, "joint_states": JOINT_TOPIC, "trigger": TRIGGER_TOPIC,
-                   "start_ns_scene": servos[0].servo.start_ns} if servos else None),
-        "thresholds": {"c_pos": options.c_pos, "c_neg": options.c_neg, "eps": options.eps,
-                       "threshold_sigma": options.threshold_sigma,
-                       "refractory_ns": options.refractory_ns},
-        "time": {"scene_start_ns": scene.start_ns, "scene_end_ns": scene.end_ns,
-                 "motion_start_ns": None if span is None else span[0],
-                 "motion_end_ns": None if span is None else span[1]},
-        "frames": {"rate_hz": options.frame_rate_hz, "blur_samples": options.blur_samples},
-        "options": {k: (list(v) if isinstance(v, tuple) else v)
-                    for k, v in asdict(options).items()},
-        "views": views,
-    }
+    return session_document(
+        source={"kind": "simulation", "scene": scene.name, "scene_ref": str(scene_ref),
+                "seed": options.seed},
+        rig={"kind": "virtual", "ring_radius_m": ring.radius,
+             "elevation_deg": ring.elevation_deg, "look_at": list(map(float, ring.look_at)),
+             "firmware_version": None, "device_serial": "virtual"},
+        camera=camera_record(camera.width, camera.height, _K(camera)),
+        servo=servo_record(servos[0].name, start_ns_scene=servos[0].servo.start_ns) if servos else None,
+        thresholds={"c_pos": options.c_pos, "c_neg": options.c_neg, "eps": options.eps,
+                    "threshold_sigma": options.threshold_sigma,
+                    "refractory_ns": options.refractory_ns},
+        time={"scene_start_ns": scene.start_ns, "scene_end_ns": scene.end_ns,
+              "motion_start_ns": None if span is None else span[0],
+              "motion_end_ns": None if span is None else span[1]},
+        frames={"rate_hz": options.frame_rate_hz, "blur_samples": options.blur_samples},
+        options={k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(options).items()},
+        views=views)
