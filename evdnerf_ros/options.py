@@ -181,7 +181,7 @@ def add_options(parser: argparse.ArgumentParser, cls, *, exclude=(), config: boo
     """Flags for every CLI field of the options dataclass `cls` (and --config FILE)."""
     if config:
         parser.add_argument("--config", metavar="FILE", default=_UNSET,
-                            help="YAML file of option values (keys: the flags' names); flags typed win")
+                            help="YAML file of option values (keys: the flags' or the options' names); flags typed win")
     for f, spec in option_fields(cls):
         if not spec.cli or f.name in exclude:
             continue
@@ -223,13 +223,15 @@ def load_config(path, cls) -> dict:
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a mapping of option: value, got {type(data).__name__}")
     known = {f.name: (f, spec) for f, spec in option_fields(cls)}
+    known.update({flag_name(f, spec).removeprefix("--").replace("-", "_"): (f, spec)
+                  for f, spec in option_fields(cls) if spec.cli})
     values = {}
     for key, value in data.items():
         name = str(key).replace("-", "_")
         if name not in known:
             raise InputError(f"{path}: {key}: unknown option; allowed: {', '.join(sorted(known))}")
         f, spec = known[name]
-        values[name] = check_value(value, f, spec, f"{path}: {key}")
+        values[f.name] = check_value(value, f, spec, f"{path}: {key}")
     return values
 
 

@@ -5,20 +5,18 @@ from __future__ import annotations
 import json
 
 from ..errors import EvdnerfError
+from ..options import add_options, options_from_args
 from .common import number
 
 
 
 def _cmd_sync(args) -> int:
-    from ..session.sync import run_sync
-    from ..units import parse_duration_ns
+    from dataclasses import asdict
 
-    extra = {k: v for k, v in (("events_topic", args.events_topic),
-                               ("trigger_topic", args.trigger_topic)) if v is not None}
-    result = run_sync(args.session, bin_ns=parse_duration_ns(args.bin, name="--bin"),
-                      method=args.method, reference_view=args.reference,
-                      refine=not args.no_refine, plot_path=args.plot, overwrite=args.overwrite,
-                      log=None if args.json else print, **extra)
+    from ..session.sync import SyncOptions, run_sync
+
+    options = options_from_args(SyncOptions, args)
+    result = run_sync(args.session, log=None if args.json else print, **asdict(options))
     if args.json:
         print(json.dumps(result, indent=2, default=str))
     return 0
@@ -63,17 +61,9 @@ def register(sub) -> None:
                                    "saves a plot of the aligned rate curves. Rate-based sync "
                                    "needs a sudden motion onset.")
     p.add_argument("session", help="session folder")
-    p.add_argument("--bin", default="1ms", help="event-rate bin (default %(default)s)")
-    p.add_argument("--method", choices=["auto", "trigger", "start", "rate", "onset"],
-                   default="auto", help="force one method (default: the best each view has)")
-    p.add_argument("--reference", help="reference view for refinement (default: first training view)")
-    p.add_argument("--no-refine", action="store_true", help="skip the cross-correlation refinement")
-    p.add_argument("--plot", help="aligned rate plot path (default SESSION/sync.png)")
-    p.add_argument("--events-topic", help="event topic (default from session.yaml)")
-    p.add_argument("--trigger-topic", help="servo START/DONE topic (default from session.yaml)")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace an existing --plot file (SESSION/sync.png, the default, is the session's own "
-                        "and always replaced; a folder never is)")
+    from ..session.sync import SyncOptions
+
+    add_options(p, SyncOptions)
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=_cmd_sync)
 

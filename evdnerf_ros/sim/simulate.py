@@ -310,7 +310,7 @@ def _pose_samples(scene: Scene, task: ViewTask) -> list[np.ndarray]:
 
 def _moving_poses(scene: Scene, task: ViewTask) -> tuple[np.ndarray, np.ndarray]:
     """(t (M,) scene ns, T_world_cam (M, 4, 4)): a constant-rate sweep along the ring."""
-    start = scene.start_ns
+    start, end = scene.start_ns, scene.end_ns
     t = np.arange(start, end, MOVING_POSE_PERIOD_NS, dtype=np.int64)
     t = np.append(t, np.int64(end))
     frac = (t - start) / float(max(1, end - start))
@@ -447,7 +447,7 @@ def _simulate_view(scene: Scene, camera: PinholeCamera, task: ViewTask,
     renderer = SceneRenderer(scene, camera, options.supersample)
     track = _moving_poses(scene, task) if task.arc_deg != 0.0 else None
     pose_at = _pose_function(task, track)
-    start = scene.start_ns
+    start, end = scene.start_ns, scene.end_ns
     span = scene.motion_span_ns()
     m0, m1 = (start, start) if span is None else (max(start, span[0]), min(end, span[1]))
     if task.arc_deg != 0.0:                  # a moving camera sees change all the time
