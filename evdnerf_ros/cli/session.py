@@ -23,21 +23,17 @@ def _cmd_sync(args) -> int:
 
 
 def _cmd_convert(args) -> int:
-    from ..session.convert import run_convert
+    from ..session.convert import ConvertOptions, run_convert
     from ..units import parse_duration_ns
 
     if (args.start is None) != (args.end is None):
         raise EvdnerfError("--start and --end go together (or leave both out for the automatic "
                            "motion window)")
-    window = None
+    window = {}
     if args.start is not None:
-        window = (parse_duration_ns(args.start, name="--start"),
-                  parse_duration_ns(args.end, name="--end"))
-    run_convert(args.session, args.output, fmt=args.format, window=window,
-                downsample=args.downsample, offsets=args.offsets, poses=args.poses,
-                intrinsics=args.intrinsics, frames=not args.no_frames,
-                compression=args.compression, n_windows=args.n_windows,
-                event_time=args.event_time, raw_events=not args.no_raw_events,
+        window["window"] = (parse_duration_ns(args.start, name="--start"),
+                            parse_duration_ns(args.end, name="--end"))
+    run_convert(args.session, args.output, options_from_args(ConvertOptions, args, **window),
                 overwrite=args.overwrite)
     return 0
 
@@ -75,29 +71,12 @@ def register(sub) -> None:
                                    "the EvDNeRF paper's transforms_*.json + data_frames_*.npy.")
     p.add_argument("session", help="session folder (session.yaml + one bag per view)")
     p.add_argument("-o", "--output", required=True, help="TRAIN.h5 or, for --format evdnerf, a folder")
-    p.add_argument("--format", choices=["h5", "evdnerf"], default="h5", help="output format (default h5)")
     p.add_argument("--start", help="window start in the synced clock, e.g. 0 or --start=-50ms "
                                    "(with --end; default: the motion window)")
     p.add_argument("--end", help="window end in the synced clock, e.g. 1s")
-    p.add_argument("--downsample", type=int, choices=[1, 2], default=1,
-                   help="2: sum events over 2x2 pixel blocks, as the paper does (default 1)")
-    p.add_argument("--offsets", choices=["sync", "ground-truth"], default="sync",
-                   help="clock offsets from `evdnerf sync` (default) or, for simulated sessions, "
-                        "the injected ground truth")
-    p.add_argument("--poses", choices=["auto", "session", "topic"], default="auto",
-                   help="camera poses from session.yaml (static) or the pose topic (moving camera)")
-    p.add_argument("--intrinsics", choices=["camera_info", "session"], default="camera_info",
-                   help="intrinsics from each bag's CameraInfo (checked against session.yaml) "
-                        "or from session.yaml")
-    p.add_argument("--no-frames", action="store_true", help="leave out the blurred frames")
-    p.add_argument("--compression", choices=["scaleoffset", "gzip"], default="scaleoffset",
-                   help="lossless HDF5 filter: scaleoffset (fast) or gzip (smaller)")
-    p.add_argument("--n-windows", type=number(int, low=1, high=100_000), default=32,
-                   help="--format evdnerf: event frames per view, 1..100000 (default %(default)s)")
-    p.add_argument("--event-time", choices=["normalized", "ns"], default="normalized",
-                   help="--format evdnerf: time column of their event arrays")
-    p.add_argument("--no-raw-events", action="store_true",
-                   help="--format evdnerf: leave out their per-view (N, 4) event arrays")
+    from ..session.convert import ConvertOptions
+
+    add_options(p, ConvertOptions)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_convert)
 

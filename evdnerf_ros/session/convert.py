@@ -62,7 +62,7 @@ import os
 import tempfile
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -74,7 +74,9 @@ from ..errors import EvdnerfError, FormatError, InputError, OutputExistsError
 from ..io.guard import OutputWriteError, check_free_space
 from ..limits import check_memory
 from ..geometry.poses import check_rigid
+from ..io.evdnerf_format import EVENT_TIMES
 from ..io.trainingset import COMPRESSIONS, TrainingSetWriter
+from ..options import check_value, flag_name, option, option_fields
 from ..topics import CAMERA_INFO, CAMERA_POSE, EVENTS
 from .layout import Session, ViewRecord, load_session, session_yaml_path
 
@@ -100,38 +102,42 @@ BATCH_EVENTS = 1 << 21
 class ConvertOptions:
     """Every knob of `evdnerf convert` (the CLI flags map one to one)."""
 
-    window: tuple[int, int] | None = None      # [start, end) ns in the common clock; None: automatic
-    downsample: int = 1                        # 1 or 2 (sum events over 2x2 blocks)
-    offsets: str | Mapping = "sync"            # "sync" | "ground-truth" | {view: offset_ns}
-    poses: str = "auto"                        # "auto" | "session" | "topic"
-    intrinsics: str = "camera_info"            # "camera_info" | "session"
-    frames: bool = True                        # copy the blurred frames
-    compression: str = "scaleoffset"           # "scaleoffset" | "gzip"
-    rate_bin_ns: int = RATE_BIN_NS             # automatic motion end: rate-curve bin
-    scene_bounds: tuple | None = None          # [[xmin, ymin, zmin], [xmax, ymax, zmax]] (m)
+    fmt: str = option("h5", "output format: our TRAIN.h5, or the EvDNeRF paper's folder", flag="--format",
+                      choices=FORMATS)
+    window: tuple[int, int] | None = option(None, "[start, end) in the common clock (ns or '10ms')", kind=int,
+                                            nargs=2, duration=True, low=-2**62, high=2**62, cli=False,
+                                            none_help="the motion window")
+    downsample: int = option(1, "2: sum events over 2x2 pixel blocks, as the paper does", choices=DOWNSAMPLE)
+    # "sync" | "ground-truth" | (library only) {view: offset_ns}
+    offsets: str | Mapping = option("sync", "clock offsets from `evdnerf sync` or, for simulated sessions, the "
+                                            "injected ground truth", choices=OFFSET_SOURCES)
+    poses: str = option("auto", "camera poses from session.yaml (static) or the pose topic (moving camera)",
+                        choices=POSE_SOURCES)
+    intrinsics: str = option("camera_info", "intrinsics from each bag's CameraInfo (checked against "
+                                            "session.yaml) or from session.yaml", choices=INTRINSICS_SOURCES)
+    frames: bool = option(True, "leave out the blurred frames")
+    compression: str = option("scaleoffset", "lossless HDF5 filter: scaleoffset (fast) or gzip (smaller)",
+                              choices=COMPRESSIONS)
+    rate_bin_ns: int = option(RATE_BIN_NS, "automatic motion end: rate-curve bin", duration=True,
+                              low=1, high=3_600 * 10**9, cli=False)
+    # [[xmin, ymin, zmin], [xmax, ymax, zmax]] (m); library only
+    scene_bounds: tuple | None = None
     topics: Mapping | None = None              # overrides of DEFAULT_TOPICS / session.yaml's topics
-    batch_events: int = BATCH_EVENTS
+    batch_events: int = option(BATCH_EVENTS, "events decoded per batch", low=1, high=2**40, cli=False)
+    # --format evdnerf
+    n_windows: int = option(32, "--format evdnerf: event frames per view", low=1, high=100_000)
+    event_time: str = option("normalized", "--format evdnerf: time column of their event arrays",
+                             choices=EVENT_TIMES)
+    raw_events: bool = option(True, "--format evdnerf: leave out their per-view (N, 4) event arrays")
 
     def check(self) -> None:
-        if self.downsample not in DOWNSAMPLE:
-            raise InputError(f"convert: downsample must be 1 or 2, got {self.downsample!r}")
-        if isinstance(self.offsets, str) and self.offsets not in OFFSET_SOURCES:
-            raise InputError(f"convert: offsets {self.offsets!r} is not one of {list(OFFSET_SOURCES)} "
-                             "(or a mapping view -> offset_ns)")
-        if self.poses not in POSE_SOURCES:
-            raise InputError(f"convert: poses {self.poses!r} is not one of {list(POSE_SOURCES)}")
-        if self.intrinsics not in INTRINSICS_SOURCES:
-            raise InputError(f"convert: intrinsics {self.intrinsics!r} is not one of {list(INTRINSICS_SOURCES)}")
-        if self.compression not in COMPRESSIONS:
-            raise InputError(f"convert: compression {self.compression!r} is not one of {list(COMPRESSIONS)}")
-        if self.window is not None:
-            w = tuple(self.window)
-            if len(w) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in w):
-                raise InputError(f"convert: window must be (start_ns, end_ns) integers, got {self.window!r}")
-            if int(w[1]) <= int(w[0]):
-                raise InputError(f"convert: window end {w[1]} ns must be after its start {w[0]} ns")
-        if int(self.rate_bin_ns) < 1 or int(self.batch_events) < 1:
-            raise InputError("convert: rate_bin_ns and batch_events must be >= 1")
+        for f, spec in option_fields(ConvertOptions):
+            value = getattr(self, f.name)
+            if f.name == "offsets" and isinstance(value, Mapping):
+                continue
+            check_value(value, f, spec, f"convert: {flag_name(f, spec) if spec.cli else f.name}")
+        if self.window is not None and int(self.window[1]) <= int(self.window[0]):
+            raise InputError(f"convert: window end {self.window[1]} ns must be after its start {self.window[0]} ns")
 
 
 # =========================================================================== pieces
@@ -689,30 +695,24 @@ class _BackgroundAppender:
 # =========================================================================== entry points
 
 
-def run_convert(session_dir, out, *, fmt: str = "h5", window=None, downsample: int = 1, offsets="sync",
-                poses: str = "auto", intrinsics: str = "camera_info", frames: bool = True,
-                compression: str = "scaleoffset", scene_bounds=None, n_windows: int = 32,
-                event_time: str = "normalized", raw_events: bool = True, overwrite: bool = False,
-                log=print) -> dict:
+def run_convert(session_dir, out, options: ConvertOptions | None = None, *, overwrite: bool = False,
+                log=print, **fields) -> dict:
     """`evdnerf convert SESSION -o OUT [--format h5|evdnerf]`: a training set .h5 (fmt="h5") or
     a folder in the EvDNeRF paper's format (fmt="evdnerf", see
     :func:`evdnerf_ros.io.evdnerf_format.export_evdnerf`; ``raw_events=False`` skips their
     per-view (N, 4) int64 event arrays, which are built in memory one view at a time at 32
-    bytes per event). Returns a summary dict."""
-    if fmt not in FORMATS:
-        raise InputError(f"convert: format {fmt!r} is not one of {list(FORMATS)}")
-    options = ConvertOptions(window=None if window is None else (int(window[0]), int(window[1])),
-                             downsample=downsample, offsets=offsets, poses=poses, intrinsics=intrinsics,
-                             frames=frames, compression=compression,
-                             scene_bounds=None if scene_bounds is None else tuple(map(tuple, scene_bounds)))
+    bytes per event). `fields` replace single options. Returns a summary dict."""
+    options = replace(options or ConvertOptions(), **fields)
+    if options.window is not None:
+        options = replace(options, window=tuple(options.window))
+    if options.scene_bounds is not None:
+        options = replace(options, scene_bounds=tuple(map(tuple, options.scene_bounds)))
     options.check()
-    if fmt == "h5":
+    if options.fmt == "h5":
         return convert_session(session_dir, out, options, overwrite=overwrite, log=log)
-    from ..io.evdnerf_format import EVENT_TIMES, export_evdnerf
+    from ..io.evdnerf_format import export_evdnerf
 
     out = Path(out)
-    if event_time not in EVENT_TIMES:
-        raise InputError(f"convert: event_time {event_time!r} is not one of {list(EVENT_TIMES)}")
     if (out.exists() or out.is_symlink()) and not overwrite:
         raise OutputExistsError(out)
     parent = out.parent if str(out.parent) else Path(".")
@@ -723,7 +723,7 @@ def run_convert(session_dir, out, *, fmt: str = "h5", window=None, downsample: i
     with tempfile.TemporaryDirectory(prefix=f".{out.name}.{os.getpid()}.", suffix=PARTIAL_SUFFIX, dir=parent) as td:
         h5 = Path(td) / "train.h5"
         summary = convert_session(session_dir, h5, options, log=log)
-        summary["export"] = export_evdnerf(h5, out, n_windows=n_windows, event_time=event_time,
-                                           events=raw_events, overwrite=overwrite, log=log)
+        summary["export"] = export_evdnerf(h5, out, n_windows=options.n_windows, event_time=options.event_time,
+                                           events=options.raw_events, overwrite=overwrite, log=log)
     summary["out"] = str(out)
     return summary
