@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from ..errors import EvdnerfError
+from ..options import add_options, options_from_args
 from .common import GEOMETRY_HELP, TOPIC_HELP, geometry, number
 
 
@@ -25,12 +26,9 @@ def _cmd_convert_events(args) -> int:
 
 
 def _cmd_video2events(args) -> int:
-    from ..sim.video import run_video2events
+    from ..sim.video import VideoOptions, run_video2events
 
-    n = run_video2events(args.frames, args.output, c_pos=args.c_pos, c_neg=args.c_neg,
-                         eps=args.eps, sigma=args.sigma, interval_sigma=args.interval_sigma,
-                         refractory_ns=args.refractory_ns, seed=args.seed,
-                         gamma_8bit=args.gamma_8bit)
+    n = run_video2events(args.frames, args.output, options_from_args(VideoOptions, args))
     print(f"{args.output}: {n} events")
     return 0
 
@@ -115,8 +113,6 @@ def register(sub) -> None:
                    help="rosbag2 storage plugin for a directory output (default mcap)")
     p.set_defaults(func=_cmd_convert_events)
 
-    from ..events.logmap import LOG_EPS
-
     p = sub.add_parser("video2events", help="turn a high-speed video into events (exact ESIM)",
                        description="FRAMES.npz holds `frames` (N, H, W) linear intensity "
                                    "(float, white = 1) and `t` (N,) int64 ns. Every threshold "
@@ -124,18 +120,9 @@ def register(sub) -> None:
                                    "interpolated time. OUT takes any format of convert-events.")
     p.add_argument("frames", help="FRAMES.npz")
     p.add_argument("output", help="output event file (format from the path; must not exist)")
-    p.add_argument("--c-pos", type=float, default=0.2, help="positive threshold C+ (default %(default)s)")
-    p.add_argument("--c-neg", type=float, default=0.2, help="negative threshold C- (default %(default)s)")
-    p.add_argument("--eps", type=float, default=LOG_EPS,
-                   help="log offset: L = log(I + eps), white = 1 (default %(default)s)")
-    p.add_argument("--sigma", type=float, default=0.0,
-                   help="per-pixel threshold mismatch std, fixed from --seed (default %(default)s)")
-    p.add_argument("--interval-sigma", type=float, default=0.0,
-                   help="per-interval threshold noise std, ESIM's model (default %(default)s)")
-    p.add_argument("--refractory-ns", type=int, default=0, help="refractory period in ns (default 0)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed (default %(default)s)")
-    p.add_argument("--gamma-8bit", action="store_true",
-                   help="accept 8-bit gamma-encoded frames and linearise them ((v/255)^2.2)")
+    from ..sim.video import VideoOptions
+
+    add_options(p, VideoOptions)
     p.set_defaults(func=_cmd_video2events)
 
     p = sub.add_parser("salvage-bag", help="write out the messages of a recording that was killed",

@@ -106,7 +106,7 @@ class EventGenerator:
         benchmarking the saving; results are identical).
     """
 
-    def __init__(self, width: int, height: int, *, c_pos: float = 0.2, c_neg: float = 0.2,
+    def __init__(self, width: int, height: int, *, c_pos: float = _noise.DEFAULT_THRESHOLD, c_neg: float = _noise.DEFAULT_THRESHOLD,
                  eps: float = LOG_EPS, threshold_sigma: float = 0.0,
                  interval_sigma: float = 0.0, refractory_ns: int = 0,
                  shot_noise_rate_hz: float = 0.0, leak_rate_hz: float = 0.0, seed: int = 0,

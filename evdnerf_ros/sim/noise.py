@@ -30,6 +30,8 @@ import numpy as np
 
 #: Smallest threshold any noise draw may produce (ESIM's floor), in log units.
 MIN_THRESHOLD = 0.01
+#: Default contrast thresholds C+ = C- (log units) of the simulator, video2events and the publisher.
+DEFAULT_THRESHOLD = 0.2
 
 
 def _rngs(seed: int):

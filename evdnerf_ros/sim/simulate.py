@@ -74,7 +74,7 @@ from ..session.recorder import (ViewRecorder, camera_record, servo_record, sessi
 from ..geometry.camera import PinholeCamera
 from .generator import EventGenerator
 from ..events.logmap import LOG_EPS
-from .noise import MIN_THRESHOLD
+from .noise import DEFAULT_THRESHOLD, MIN_THRESHOLD
 from .motion import image_travel
 from .render import SceneRenderer
 from .sampling import simulate_renderer
@@ -102,8 +102,8 @@ class SimulationOptions:
     resolution: tuple[int, int] | None = option(None, "image size", kind=int, nargs=2, metavar=("W", "H"),
                                                 low=1, high=16_384, none_help="the scene's intrinsics")
     seed: int = option(0, "clock offsets and noise", low=0, high=2**63 - 1)
-    c_pos: float = option(0.2, "positive contrast threshold C+", low=MIN_THRESHOLD, high=10.0)
-    c_neg: float = option(0.2, "negative contrast threshold C-", low=MIN_THRESHOLD, high=10.0)
+    c_pos: float = option(DEFAULT_THRESHOLD, "positive contrast threshold C+", low=MIN_THRESHOLD, high=10.0)
+    c_neg: float = option(DEFAULT_THRESHOLD, "negative contrast threshold C-", low=MIN_THRESHOLD, high=10.0)
     eps: float = option(LOG_EPS, "log offset: L = log(I + eps), white = 1", low=0.0, high=1.0, low_open=True)
     threshold_sigma: float = option(0.0, "per-pixel threshold mismatch std (fixed per view seed)",
                                     flag="--sigma", low=0.0, high=1.0)

@@ -23,15 +23,16 @@ Generator options and their ranges (the CLI flags): --c-pos / --c-neg in [0.01, 
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError, OutputExistsError
-from ..limits import check_memory, check_number
+from ..options import check_value, flag_name, option, option_fields
 from .generator import _MAX_INTERVAL_NS, _MAX_SIDE, EventGenerator
 from ..events.logmap import LOG_EPS, check_intensity
-from .noise import MIN_THRESHOLD
+from .noise import DEFAULT_THRESHOLD, MIN_THRESHOLD
 
 #: Frame times lie within +-2**62 ns (146 years), so every difference fits in int64.
 MAX_ABS_TIME_NS = 1 << 62
@@ -126,35 +127,44 @@ def video_to_events(frames, t, **generator_options) -> np.ndarray:
     return EventGenerator(w, h, **generator_options).generate(frames, t)
 
 
-def run_video2events(frames_path, out_path, *, c_pos: float = 0.2, c_neg: float = 0.2,
-                     eps: float = LOG_EPS, sigma: float = 0.0, refractory_ns: int = 0,
-                     seed: int = 0, gamma_8bit: bool = False, interval_sigma: float = 0.0) -> int:
+@dataclass(frozen=True)
+class VideoOptions:
+    """Every knob of `evdnerf video2events` (flags, --config keys and library defaults)."""
+
+    c_pos: float = option(DEFAULT_THRESHOLD, "positive contrast threshold C+", low=MIN_THRESHOLD, high=10.0)
+    c_neg: float = option(DEFAULT_THRESHOLD, "negative contrast threshold C-", low=MIN_THRESHOLD, high=10.0)
+    eps: float = option(LOG_EPS, "log offset: L = log(I + eps), white = 1", low=0.0, high=1.0, low_open=True)
+    sigma: float = option(0.0, "per-pixel threshold mismatch std (v2e's sigma), fixed from --seed",
+                          low=0.0, high=1.0)
+    interval_sigma: float = option(0.0, "per-interval threshold noise std, ESIM's model", low=0.0, high=1.0)
+    refractory_ns: int = option(0, "refractory period in ns", low=0, high=10_000_000_000)
+    seed: int = option(0, "noise seed", low=0, high=2**63 - 1)
+    gamma_8bit: bool = option(False, "accept 8-bit gamma-encoded frames and linearise them ((v/255)^2.2)")
+
+
+def run_video2events(frames_path, out_path, options: VideoOptions | None = None, **fields) -> int:
     """The whole ``evdnerf video2events FRAMES.npz OUT`` job; returns the number of events.
 
     `sigma` is the per-pixel threshold mismatch (v2e's sigma, fixed from `seed`);
-    `interval_sigma` is ESIM's per-interval threshold noise. OUT's container follows its
-    suffix (see :mod:`evdnerf_ros.io.event_files`); an existing OUT is refused (checked
-    before any work) and nothing is half-written on failure (the writers are atomic).
+    `interval_sigma` is ESIM's per-interval threshold noise; `fields` replace single options.
+    OUT's container follows its suffix (see :mod:`evdnerf_ros.io.event_files`); an existing OUT
+    is refused (checked before any work) and nothing is half-written on failure (the writers are
+    atomic).
     """
     from ..events.types import empty_triggers
     from ..io.event_files import EventFile, container_kind, write_event_file
 
-    c_pos = check_number(c_pos, "--c-pos", low=MIN_THRESHOLD, high=10.0)
-    c_neg = check_number(c_neg, "--c-neg", low=MIN_THRESHOLD, high=10.0)
-    eps = check_number(eps, "--eps", low=0.0, high=1.0, low_open=True)
-    sigma = check_number(sigma, "--sigma", low=0.0, high=1.0)
-    interval_sigma = check_number(interval_sigma, "--interval-sigma", low=0.0, high=1.0)
-    refractory_ns = check_number(refractory_ns, "--refractory-ns", low=0, high=10_000_000_000,
-                                 integer=True)
-    seed = check_number(seed, "--seed", low=0, high=2**63 - 1, integer=True)
+    o = replace(options or VideoOptions(), **fields)
+    for f, spec in option_fields(VideoOptions):
+        check_value(getattr(o, f.name), f, spec, flag_name(f, spec))
     out_path = Path(out_path)
     kind = container_kind(out_path)           # unknown suffix: fail before any work
     if out_path.exists():
         raise OutputExistsError(out_path)
-    frames, t = load_frames_npz(frames_path, gamma_8bit=gamma_8bit)
+    frames, t = load_frames_npz(frames_path, gamma_8bit=o.gamma_8bit)
     _, h, w = frames.shape
-    gen = EventGenerator(w, h, c_pos=c_pos, c_neg=c_neg, eps=eps, threshold_sigma=sigma,
-                         interval_sigma=interval_sigma, refractory_ns=refractory_ns, seed=seed)
+    gen = EventGenerator(w, h, c_pos=o.c_pos, c_neg=o.c_neg, eps=o.eps, threshold_sigma=o.sigma,
+                         interval_sigma=o.interval_sigma, refractory_ns=o.refractory_ns, seed=o.seed)
     events = gen.generate(frames, t)
     write_event_file(out_path, EventFile(events, empty_triggers(), w, h, kind))
     return int(events.size)
