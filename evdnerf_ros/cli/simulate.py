@@ -33,7 +33,9 @@ def register(sub) -> None:
                                    "events-PSNR against wall time.")
     p.add_argument("-o", "--output", default="demo_output", help="output folder (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
-    p.add_argument("--train-minutes", type=number(float, low=0, low_open=True, high=10_080), default=2.0,
+    from ..demo import TRAIN_MINUTES
+
+    p.add_argument("--train-minutes", type=number(float, low=0, low_open=True, high=10_080), default=TRAIN_MINUTES,
                    help="training budget of the demo's field, in (0, 10080] (default: %(default)s)")
     p.set_defaults(func=_cmd_demo)
 
