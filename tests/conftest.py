@@ -28,6 +28,17 @@ def rng():
 
 
 @pytest.fixture(scope="session")
+def built():
+    """The servo firmware built once for the virtual Arduino (skips when avr-gcc / simavr are missing)."""
+    from rig import virtual_arduino as va_mod
+
+    missing = [p for p in va_mod.missing_tools() if p != "avrdude"]
+    if missing:
+        pytest.skip("firmware tools missing: install the Debian packages " + " ".join(missing))
+    return va_mod.build()
+
+
+@pytest.fixture(scope="session")
 def tiny_train_h5(tmp_path_factory):
     """A tiny training set (fork, 32x32 with 2x2 supersampling, 4 training + 2 validation views
     + 1 moving validation view, 20 Hz blurred frames, ground-truth offsets), built once."""

@@ -20,14 +20,6 @@ from rig import virtual_arduino as va_mod
 FRAME_NS = 20_000_000
 
 
-@pytest.fixture(scope="module")
-def built():
-    missing = [p for p in va_mod.missing_tools() if p != "avrdude"]
-    if missing:
-        pytest.skip("firmware tools missing: install the Debian packages " + " ".join(missing))
-    return va_mod.build()
-
-
 @pytest.fixture
 def va(built, tmp_path):
     v = va_mod.VirtualArduino(workdir=tmp_path, eeprom=tmp_path / "eeprom.bin")

@@ -153,16 +153,6 @@ def test_port_without_permission(tmp_path, capsys):
 
 # --------------------------------------------------------------------------- EEPROM image file
 
-@pytest.fixture(scope="module")
-def built():
-    from rig import virtual_arduino as va_mod
-
-    missing = [p for p in va_mod.missing_tools() if p != "avrdude"]
-    if missing:
-        pytest.skip("firmware tools missing: install the Debian packages " + " ".join(missing))
-    return va_mod.build()
-
-
 def _bad_eeprom_paths(tmp_path):
     short = tmp_path / "short.bin"
     short.write_bytes(b"\x01" * 10)

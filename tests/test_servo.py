@@ -157,16 +157,6 @@ def test_no_answer_names_the_fix():
 
 # --------------------------------------------------------------------------- CLI (virtual)
 
-@pytest.fixture(scope="module")
-def built():
-    from rig import virtual_arduino as va_mod
-
-    missing = [p for p in va_mod.missing_tools() if p != "avrdude"]
-    if missing:
-        pytest.skip("firmware tools missing: install the Debian packages " + " ".join(missing))
-    return va_mod.build()
-
-
 def test_cli_servo_virtual(built, tmp_path, capsys):
     from evdnerf_ros.cli import main
 
