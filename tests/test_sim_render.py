@@ -94,7 +94,7 @@ def test_shadow_darkens_region_below_object():
     T = look_at([2.5, 0, 1.5], [0, 0, 0])
     cam = PinholeCamera.from_fov(96, 96, 50.0)
     on = render(scene([floor, ball]), T, 0, cam, supersample=1)
-    off = SceneRenderer(scene([floor, ball]), cam, 1, shadows=False).render(T, 0)
+    off = SceneRenderer(scene([floor, ball]), cam, 1, shadows=False).render_result(T, 0)
 
     def pixel(p):
         pc = (np.asarray(p, float) - T[:3, 3]) @ T[:3, :3]
@@ -152,7 +152,7 @@ def test_every_preset_renders_every_view(name):
     r = SceneRenderer(sc, cam, 1)
     t = (sc.start_ns + sc.end_ns) // 2
     for T in sc.camera_poses("train"):
-        res = r.render(T, t)
+        res = r.render_result(T, t)
         assert res.intensity.shape == (64, 64) and res.intensity.dtype == np.float32
         assert np.all(np.isfinite(res.intensity)) and res.intensity.min() > 0
         assert res.mask.sum() > 20
@@ -164,7 +164,7 @@ def test_bbox_prefilter_gives_identical_images_with_fewer_tests():
     T = sc.camera_poses()[2]
     a = SceneRenderer(sc, cam, 2, prefilter=True)
     b = SceneRenderer(sc, cam, 2, prefilter=False)
-    ra, rb = a.render(T, 300_000_000), b.render(T, 300_000_000)
+    ra, rb = a.render_result(T, 300_000_000), b.render_result(T, 300_000_000)
     assert np.array_equal(ra.intensity, rb.intensity) and np.array_equal(ra.depth, rb.depth)
     assert a.stats.tests < 0.6 * b.stats.tests
 

@@ -71,7 +71,7 @@ def test_unknown_keys_name_path_and_allowed(tmp_path, mutate, path, allowed):
 def test_bad_type_and_texture_list_allowed(tmp_path):
     d = minimal()
     d["objects"][0]["type"] = "cone"
-    with pytest.raises(InputError, match=r"objects\[0\]\.type.*'cone'.*box, sphere, cylinder"):
+    with pytest.raises(InputError, match=r"objects\[0\]\.type: expected one of box, sphere, cylinder.*, got 'cone'"):
         load_scene(write(tmp_path, d))
     d = minimal()
     d["objects"][0]["texture"] = {"type": "plaid", "scale": 1}

@@ -211,6 +211,32 @@ def test_checkpoint_errors(train_h5, train_set, tmp_path):
         Trainer(train_set, small_config(field=dict(SMALL_FIELD, features=4)), iters=5).init_from(ck)
 
 
+def test_trained_run_reads_back_what_train_wrote(train_h5, train_set, tmp_path):
+    """TrainedRun.load of a real run: config, iteration, weights, dynamic region and the
+    training set's time span and thresholds, as eval and the publisher use them."""
+    from evdnerf_ros.geometry.camera import look_at
+    from evdnerf_ros.train.run import TrainedRun
+    from evdnerf_ros.train.sampler import camera_of
+
+    cfg = small_config(rays=32, occupancy_resolution=8, occupancy_warmup=0, occupancy_every=1)
+    r = run_train(train_h5, tmp_path / "R", config=cfg, iters=3, log=lambda *_: None)
+    run = TrainedRun.load(tmp_path / "R")
+    data = load_checkpoint(r["checkpoint"])
+    assert run.iteration == 3 and run.config.diff(cfg) == [] and run.config.rays == 32
+    np.testing.assert_array_equal(run.box, r["box"])
+    for k, v in data["field"].items():
+        assert torch.equal(run.field.state_dict()[k], v)
+    assert run.time_range_ns == tuple(train_set.time_range)
+    assert run.thresholds == pytest.approx(train_set.thresholds)
+    assert run.dynamic is not None and torch.equal(run.dynamic.mask, data["extra"]["dynamic"])
+    assert run.occupancy is not None and torch.equal(run.occupancy.occupied, data["extra"]["occupied"])
+    cam = camera_of(train_set.K(), train_set.width, train_set.height)
+    renderer = run.renderer(cam)
+    assert renderer.duration_ns == train_set.duration_ns
+    img = renderer.render(look_at([0.0, -4.0, 1.0], [0.0, 0.0, 0.0]), train_set.time_range[0])
+    assert img.shape == (train_set.height, train_set.width) and np.all(np.isfinite(img))
+
+
 def test_nan_guard(train_set):
     cfg = small_config(rays=32, max_nonfinite_steps=3)
     tr = Trainer(train_set, cfg, iters=100, log=lambda *_: None)

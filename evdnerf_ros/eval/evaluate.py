@@ -120,27 +120,6 @@ def moving_views(train_set, views) -> list[str]:
     return [v for v in views if train_set.info(v).moving]
 
 
-def load_field(run_dir):
-    """(field in eval mode, TrainConfig, box, iteration, DynamicRegion or None) from RUN/checkpoint.pt."""
-    from pathlib import Path
-
-    from ..field import make_field
-    from ..train.checkpoint import load_checkpoint
-    from ..train.config import TrainConfig
-    from ..train.trainer import CHECKPOINT_NAME
-
-    ckpt = Path(run_dir) / CHECKPOINT_NAME
-    data = load_checkpoint(ckpt)
-    cfg = TrainConfig.from_dict(data["config"], source=f"{ckpt} (config)")
-    field = make_field(cfg.backbone, **cfg.field)
-    field.load_state_dict(data["field"])
-    field.eval()
-    from ..field import DynamicRegion
-    mask = data.get("extra", {}).get("dynamic")
-    dynamic = DynamicRegion(mask) if mask is not None else None
-    return field, cfg, np.asarray(data["box"], np.float64), int(data["iteration"]), dynamic
-
-
 def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int | None = None,
              image_path=None, factors=(1, 4, 8), log=print) -> dict:
     """`evdnerf eval RUN TRAIN.h5`: events metrics on validation and training views at the
@@ -148,9 +127,11 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
     import torch
 
     from ..io.trainingset import TrainingSet
+    from ..train.run import TrainedRun
     from .figures import intensity_figure, side_by_side
 
-    field, cfg, box, iteration, dynamic = load_field(run_dir)
+    run = TrainedRun.load(run_dir)
+    field, cfg, box, iteration, dynamic = run.field, run.config, run.box, run.iteration, run.dynamic
     n = int(n_windows or cfg.windows[-1])
     result = {"run": str(run_dir), "train_set": str(train_h5), "iteration": iteration,
               "trained_windows": n, "lpips": None,

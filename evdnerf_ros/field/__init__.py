@@ -5,6 +5,7 @@
 - ``PlanesField`` (``planes``, default): K-Planes/HexPlane-style factorised 4D field.
 - ``DNeRFField`` (``dnerf``): the paper's deformation + canonical MLPs.
 - ``render``: rays, ray-box intersection, sampling, volume rendering.
+- ``FieldRenderer``: a field as a ``evdnerf_ros.renderer.Renderer`` (``renderer.py``).
 - ``OccupancyGrid``: empty-space skipping (from the field or an event footprint).
 - ``DynamicRegion``: where the scene may change (visual hull of the event footprints).
 """
@@ -16,6 +17,7 @@ from .occupancy import OccupancyGrid
 from .planes import PlanesField
 from .render import (camera_rays, normalize_points, ray_box_intersect, render_image,
                      render_rays, sample_along_rays, volume_weights)
+from .renderer import FieldRenderer
 
 BACKBONES = {"planes": PlanesField, "dnerf": DNeRFField}
 
@@ -30,7 +32,7 @@ def make_field(name: str = "planes", **kwargs) -> DynamicField:
     return cls(**kwargs)
 
 
-__all__ = ["DynamicField", "PlanesField", "DNeRFField", "OccupancyGrid", "DynamicRegion",
+__all__ = ["DynamicField", "PlanesField", "DNeRFField", "OccupancyGrid", "DynamicRegion", "FieldRenderer",
            "event_footprint", "BACKBONES",
            "make_field", "normalized_time", "camera_rays", "normalize_points", "ray_box_intersect",
            "render_image", "render_rays", "sample_along_rays", "volume_weights",

@@ -19,6 +19,7 @@ from typing import Any
 import yaml
 
 from ..errors import InputError
+from ..yamlcheck import Where, load_yaml, mapping
 
 _TYPES = (bool, int, float, str, list)
 
@@ -90,29 +91,22 @@ def _applies(key: str, node: str, namespace: str) -> bool:
 
 
 def load_params_file(path, node: str, namespace: str = "/") -> dict[str, Any]:
-    """The flattened ``ros__parameters`` a file gives node `node` in `namespace`."""
-    from ..io.guard import read_text
-
+    """The flattened ``ros__parameters`` a file gives node `node` in `namespace`; the file's
+    structure is checked with ``evdnerf_ros.yamlcheck`` (errors name the file and the key)."""
     path = Path(path)
-    text = read_text(path, what="parameter file")
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise InputError(f"{path}: not valid YAML ({exc})") from None
-    except RecursionError:
-        raise InputError(f"{path}: YAML nested too deeply") from None
+    data = load_yaml(path, what="parameter file")
     if data is None:
         return {}
-    if not isinstance(data, dict):
-        raise InputError(f"{path}: a parameter file maps node names to {{ros__parameters: ...}}")
+    top = Where(path)
+    mapping(data, top, what="a mapping of node names to {ros__parameters: ...}")
     out: dict[str, Any] = {}
     for key, body in data.items():
+        where = top / str(key)
         if not isinstance(body, dict) or "ros__parameters" not in body:
-            raise InputError(f"{path}: entry {key!r} has no 'ros__parameters' mapping; write "
-                             f"'{key}:\\n  ros__parameters:\\n    name: value'")
-        params = body["ros__parameters"]
-        if not isinstance(params, dict):
-            raise InputError(f"{path}: {key}.ros__parameters must be a mapping")
+            where.fail(f"has no 'ros__parameters' mapping; write "
+                       f"'{key}:\\n  ros__parameters:\\n    name: value'")
+        params = mapping(body["ros__parameters"], where / "ros__parameters",
+                         what="a mapping of parameter names to values")
         if _applies(key, node, namespace):
             out.update(_flatten(params))
     return out

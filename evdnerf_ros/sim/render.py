@@ -1,8 +1,9 @@
 """Deterministic, vectorised ray-casting renderer of linear grey intensity, depth and mask.
 
 ``render(scene, T_world_cam, t_ns, camera, supersample=2) -> RenderResult`` and
-``SceneRenderer(scene, camera, supersample)(T_world_cam, t_ns) -> (H, W) float32`` (the
-``render(T_world_cam, t_ns) -> image`` interface of DESIGN.md that the event generator uses).
+``SceneRenderer(scene, camera, supersample)``, a :class:`evdnerf_ros.renderer.Renderer`:
+``.render(T_world_cam, t_ns)`` (or calling it) -> (H, W) float32 intensity, the interface
+the event generator uses; ``.render_result(T_world_cam, t_ns)`` adds depth and mask.
 
 Per frame:
 
@@ -143,7 +144,9 @@ def _ray_dirs(camera: PinholeCamera, s: int) -> np.ndarray:
 
 
 class SceneRenderer:
-    """Renders one scene through one camera; ``__call__(T_world_cam, t_ns)`` -> intensity."""
+    """Renders one scene through one camera (a :class:`evdnerf_ros.renderer.Renderer`):
+    ``render(T_world_cam, t_ns)`` / ``__call__`` -> intensity; ``render_result`` -> intensity,
+    depth and mask."""
 
     def __init__(self, scene: Scene, camera: PinholeCamera | None = None, supersample: int = 2,
                  *, prefilter: bool = True, shadows: bool | None = None):
@@ -158,10 +161,22 @@ class SceneRenderer:
         self._bg_cache: tuple[bytes, int, np.ndarray] | None = None
 
     # public -----------------------------------------------------------------------
-    def __call__(self, T_world_cam, t_ns) -> np.ndarray:
-        return self.render(T_world_cam, t_ns, geometry=False).intensity
+    @property
+    def width(self) -> int:
+        return self.camera.width
 
-    def render(self, T_world_cam, t_ns, *, geometry: bool = True) -> RenderResult:
+    @property
+    def height(self) -> int:
+        return self.camera.height
+
+    def render(self, T_world_cam, t_ns) -> np.ndarray:
+        """(H, W) float32 linear intensity at int64-ns time ``t_ns`` (the Renderer interface)."""
+        return self.render_result(T_world_cam, t_ns, geometry=False).intensity
+
+    __call__ = render
+
+    def render_result(self, T_world_cam, t_ns, *, geometry: bool = True) -> RenderResult:
+        """Intensity and, with ``geometry``, depth and mask (else both None)."""
         if isinstance(t_ns, (bool, float, np.floating)) or not isinstance(t_ns, (int, np.integer)):
             raise InputError(f"render time must be int64 nanoseconds; got {t_ns!r}")
         T = check_rigid(T_world_cam, "T_world_cam")
@@ -330,5 +345,5 @@ class SceneRenderer:
 def render(scene: Scene, T_world_cam, t_ns, camera: PinholeCamera | None = None, *,
            supersample: int = 2, prefilter: bool = True) -> RenderResult:
     """Render intensity, depth and mask of ``scene`` at int64-ns time ``t_ns``."""
-    return SceneRenderer(scene, camera, supersample, prefilter=prefilter).render(
+    return SceneRenderer(scene, camera, supersample, prefilter=prefilter).render_result(
         T_world_cam, t_ns)

@@ -84,9 +84,10 @@ from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
-import yaml
 
+from .. import yamlcheck as yc
 from ..errors import InputError
+from ..yamlcheck import Where
 from . import geometry as geo
 from ..geometry.camera import CameraRing, CameraSetup, PinholeCamera
 from ..geometry.servo_profile import DEFAULT_RUN, RunProfile, move_profile
@@ -304,65 +305,39 @@ class Scene:
 # ----------------------------------------------------------------------------- validation
 
 class _V:
-    """Validation helpers bound to one source file."""
+    """The scene's checks, bound to one source file: key paths written out as text
+    (``objects[2].motion``), every check and message from ``evdnerf_ros.yamlcheck``."""
 
     def __init__(self, source: str, base_dir: Path | None):
         self.source = source
         self.base_dir = base_dir
+        self.top = Where(source)
+
+    def at(self, path: str) -> Where:
+        return self.top.at(path)
 
     def fail(self, path: str, msg: str):
-        raise InputError(f"{self.source}: {path}: {msg}" if path else f"{self.source}: {msg}")
+        self.at(path).fail(msg)
 
     def mapping(self, path, value, allowed, required=()) -> dict:
-        if not isinstance(value, dict):
-            self.fail(path, f"expected a mapping with keys {', '.join(allowed)}; got "
-                            f"{type(value).__name__}")
-        for k in value:
-            if k not in allowed:
-                self.fail(_join(path, str(k)), f"unknown key {k!r}; allowed keys here: "
-                                               f"{', '.join(allowed)}")
-        for k in required:
-            if k not in value:
-                self.fail(path, f"missing required key {k!r}")
-        return value
+        return yc.mapping(value, self.at(path), allowed=allowed, required=required)
 
     def seq(self, path, value, min_len=0) -> list:
-        if not isinstance(value, list):
-            self.fail(path, f"expected a list; got {type(value).__name__}")
-        if len(value) < min_len:
-            self.fail(path, f"needs at least {min_len} entr{'y' if min_len == 1 else 'ies'}")
-        return value
+        return yc.sequence(value, self.at(path), min_len=min_len)
 
     def number(self, path, value, *, lo=None, hi=None, lo_open=False, hi_open=False) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            self.fail(path, f"expected a number; got {value!r}")
-        try:
-            x = float(value)
-        except OverflowError:                   # an int beyond float range
-            x = math.inf
-        if not math.isfinite(x):
-            self.fail(path, f"must be finite; got {value!r}")
+        where = self.at(path)
+        x = float(yc.number(value, where, low=lo, high=hi, low_open=lo_open, high_open=hi_open))
         if abs(x) > MAX_MAGNITUDE:
-            self.fail(path, f"must be within +-{MAX_MAGNITUDE:g} (metres, degrees, intensity); "
-                            f"got {value!r}")
-        if lo is not None and (x < lo or (lo_open and x == lo)):
-            self.fail(path, f"must be {'>' if lo_open else '>='} {lo}; got {value!r}")
-        if hi is not None and (x > hi or (hi_open and x == hi)):
-            self.fail(path, f"must be {'<' if hi_open else '<='} {hi}; got {value!r}")
+            where.fail(f"must be within +-{MAX_MAGNITUDE:g} (metres, degrees, intensity), got {value!r}")
         return x
 
     def integer(self, path, value, *, lo=None, hi=None) -> int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            self.fail(path, f"expected an integer; got {value!r}")
-        if lo is not None and value < lo:
-            self.fail(path, f"must be >= {lo}; got {value}")
-        if hi is not None and value > hi:
-            self.fail(path, f"must be <= {hi}; got {value}")
-        return int(value)
+        return yc.number(value, self.at(path), low=lo, high=hi, integer=True)
 
     def vec(self, path, value, n=3, *, positive=False, nonzero=False) -> np.ndarray:
         if not isinstance(value, list) or len(value) != n:
-            self.fail(path, f"expected a list of {n} numbers; got {value!r}")
+            self.fail(path, f"expected a list of {n} numbers, got {yc.show(value)}")
         v = np.array([self.number(f"{path}[{i}]", x, lo=0.0 if positive else None,
                                   lo_open=positive) for i, x in enumerate(value)])
         if nonzero and not np.linalg.norm(v) > 0:
@@ -370,24 +345,18 @@ class _V:
         return v
 
     def choice(self, path, value, allowed) -> str:
-        if value not in allowed:
-            self.fail(path, f"unknown value {value!r}; allowed: {', '.join(allowed)}")
-        return value
+        return yc.choice(value, self.at(path), allowed)
 
     def string(self, path, value) -> str:
-        if not isinstance(value, str) or not value:
-            self.fail(path, f"expected a non-empty string; got {value!r}")
-        return value
+        return yc.text(value, self.at(path))
 
     def boolean(self, path, value) -> bool:
-        if not isinstance(value, bool):
-            self.fail(path, f"expected true or false; got {value!r}")
-        return value
+        return yc.boolean(value, self.at(path))
 
     def time_ns(self, path, value) -> int:
         """Seconds (number) or a string with a unit (s, ms, us, ns) -> int64 ns, exactly."""
         if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-            self.fail(path, f"expected a time in seconds; got {value!r}")
+            self.fail(path, f"expected a time in seconds, got {value!r}")
         text = str(value).strip()
         unit = 1_000_000_000
         for suffix, mult in (("ns", 1), ("us", 1_000), ("ms", 1_000_000), ("s", 1_000_000_000)):
@@ -400,10 +369,10 @@ class _V:
             self.fail(path, f"cannot read {value!r} as a time; write seconds (0.25) or "
                             "'250ms', '250000us', '250000000ns'")
         if not x.is_finite():
-            self.fail(path, f"must be finite; got {value!r}")
+            self.fail(path, f"must be finite, got {value!r}")
         ns = x * unit
         if abs(ns) > MAX_TIME_NS:
-            self.fail(path, f"must be within +-{MAX_TIME_NS // 1_000_000_000} s; got {value!r}")
+            self.fail(path, f"must be within +-{MAX_TIME_NS // 1_000_000_000} s, got {value!r}")
         if ns != ns.to_integral_value():
             self.fail(path, f"{value!r} is not a whole number of nanoseconds")
         return int(ns)
@@ -415,7 +384,7 @@ class _V:
             if len(value) == 4:
                 return self._quat(path, value)
             self.fail(path, f"a rotation list has 3 entries (euler_deg) or 4 (quaternion "
-                            f"w, x, y, z); got {len(value)}")
+                            f"w, x, y, z), got {len(value)}")
         m = self.mapping(path, value, ("euler_deg", "quaternion"))
         if len(m) != 1:
             self.fail(path, "give exactly one of euler_deg, quaternion")
@@ -468,32 +437,8 @@ def load_scene(name_or_path, *, check_cameras: bool = True) -> Scene:
 
 def load_scene_file(path, *, check_cameras: bool = True) -> Scene:
     path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            raw = f.read(MAX_SCENE_BYTES + 1)
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read scene file: {exc.strerror}") from None
-    if len(raw) > MAX_SCENE_BYTES:
-        raise InputError(f"{path}: scene file is larger than {MAX_SCENE_BYTES >> 20} MiB; "
-                         "is this really a scene YAML?")
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = raw[:exc.start].count(b"\n") + 1
-        raise InputError(f"{path}: line {line}: not UTF-8 text (byte 0x{raw[exc.start]:02x} at "
-                         f"offset {exc.start}); save the scene file as UTF-8") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        raise InputError(f"{path}:{where}: not valid YAML: "
-                         f"{getattr(exc, 'problem', None) or exc}") from None
-    except RecursionError:
-        raise InputError(f"{path}: YAML nested too deeply") from None
-    if data is None:
-        raise InputError(f"{path}: the scene file is empty; a scene needs at least an "
-                         "'objects' list (see config/scenes/*.yaml)")
+    data = yc.load_yaml(path, what="scene file", max_bytes=MAX_SCENE_BYTES,
+                        empty="a scene needs at least an 'objects' list (see config/scenes/*.yaml)")
     return scene_from_dict(data, source=str(path), base_dir=path.parent,
                            default_name=path.stem, check_cameras=check_cameras)
 
@@ -507,7 +452,7 @@ def scene_from_dict(data, *, source: str = "<scene>", base_dir=None, default_nam
     name = v.string("name", top["name"]) if "name" in top else default_name
     desc = top.get("description", "")
     if not isinstance(desc, str):
-        v.fail("description", f"expected a string; got {type(desc).__name__}")
+        v.fail("description", f"must be a string, got {yc.a_type(desc)}")
 
     start_ns, end_ns = 0, 1_000_000_000
     if "time" in top:
@@ -515,7 +460,7 @@ def scene_from_dict(data, *, source: str = "<scene>", base_dir=None, default_nam
         start_ns = v.time_ns("time.start_s", tm["start_s"])
         end_ns = v.time_ns("time.end_s", tm["end_s"])
         if end_ns <= start_ns:
-            v.fail("time.end_s", f"must be after time.start_s ({tm['start_s']}); got "
+            v.fail("time.end_s", f"must be after time.start_s ({tm['start_s']}), got "
                                  f"{tm['end_s']}")
 
     background = Background()
@@ -626,7 +571,7 @@ _SHAPE_KEYS = {"box": ("size",), "sphere": ("radius",), "cylinder": ("radius", "
 def _object(v: _V, path: str, data, group: SceneObject | None, start_ns: int,
             names: dict[str, str]) -> SceneObject:
     if not isinstance(data, dict):
-        v.fail(path, f"expected a mapping describing an object; got {type(data).__name__}")
+        v.fail(path, f"must be a mapping describing an object, got {yc.a_type(data)}")
     if "type" not in data:
         v.fail(path, f"missing required key 'type' (one of {', '.join(OBJECT_TYPES)})")
     kind = v.choice(_join(path, "type"), data["type"], OBJECT_TYPES)
@@ -771,7 +716,7 @@ def _motion(v: _V, path, data, obj: SceneObject, group, start_ns):
                 for i, seg in enumerate(v.seq(_join(sp, "segments"), s["segments"], min_len=1)):
                     q = f"{sp}.segments[{i}]"
                     if not isinstance(seg, list) or len(seg) != 2:
-                        v.fail(q, f"expected [angle_deg, duration_ms]; got {seg!r}")
+                        v.fail(q, f"expected [angle_deg, duration_ms], got {seg!r}")
                     segs.append((v.number(f"{q}[0]", seg[0]),
                                  v.integer(f"{q}[1]", seg[1], lo=1, hi=65535)))
             profile = RunProfile(a0, tuple(segs))

@@ -1,10 +1,12 @@
 """EvDNeRF training: config, ray sampler, event losses, the loop and checkpoints.
 
-``run_train(train_h5, run_dir, ...)`` is the ``evdnerf train`` entry point.
+``run_train(train_h5, run_dir, ...)`` is the ``evdnerf train`` entry point;
+``TrainedRun.load(run_dir)`` reads a run folder back (evaluation, publishing, resuming).
 """
 
 from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from .config import TrainConfig, resolve_config
+from .run import TrainedRun
 from .losses import bin_bounds, bin_loss, mse_loss, no_event_hinge
 from .sampler import RayBatch, RaySampler, default_box
 from .trainer import Trainer, TrainingDivergedError, plane_regularisers, run_train
@@ -12,4 +14,4 @@ from .trainer import Trainer, TrainingDivergedError, plane_regularisers, run_tra
 __all__ = ["TrainConfig", "resolve_config", "bin_bounds", "bin_loss", "mse_loss", "no_event_hinge",
            "RayBatch", "RaySampler", "default_box", "Trainer",
            "TrainingDivergedError", "plane_regularisers", "run_train", "CheckpointError",
-           "load_checkpoint", "save_checkpoint"]
+           "load_checkpoint", "save_checkpoint", "TrainedRun"]

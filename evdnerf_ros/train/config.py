@@ -1,7 +1,8 @@
 """Training configuration: every knob of ``evdnerf train`` in one dataclass.
 
 Defaults live here and nowhere else.  A YAML file holds a mapping of field names to
-values (any subset); an unknown key is an error that names it.  ``field`` holds the
+values (any subset), read and checked with ``evdnerf_ros.yamlcheck``; an unknown key is
+an error that names it.  ``field`` holds the
 keyword sizes of the chosen backbone (``evdnerf_ros.field.make_field``).  Every key has a
 type and a documented range (``train/ranges.py``), checked whenever a config is built
 (defaults, dict, YAML file, checkpoint) and before anything is allocated; the error names
@@ -15,9 +16,9 @@ from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 from typing import Any
 
-from ..errors import InputError
 from ..events.logmap import LOG_EPS
-from .ranges import check_config, show
+from ..yamlcheck import Where, load_yaml, mapping
+from .ranges import check_config
 
 LOSSES = ("bin", "bin_paper", "mse")
 
@@ -174,13 +175,8 @@ class TrainConfig:
     def from_dict(cls, data: dict, *, source: str = "training config") -> "TrainConfig":
         if data is None:
             data = {}
-        if not isinstance(data, dict):
-            raise InputError(f"{source}: must be a mapping of option names to values, "
-                             f"got {type(data).__name__}")
-        names = [f.name for f in dataclasses.fields(cls)]
-        for key in data:
-            if key not in names:
-                raise InputError(f"{source}: unknown key {show(key)}; known keys: {', '.join(sorted(names))}")
+        names = sorted(f.name for f in dataclasses.fields(cls))
+        mapping(data, Where(source), allowed=names, what="a mapping of option names to values")
         cfg = cls()                     # defaults, then the given keys, checked as one
         for key, value in data.items():
             setattr(cfg, key, value)
@@ -191,20 +187,10 @@ class TrainConfig:
     def load(cls, path) -> "TrainConfig":
         """Read a YAML mapping of option names; a file that is not one (empty, not UTF-8,
         not YAML, too big) is an InputError naming it."""
-        import yaml
-        from ..io.guard import read_text
-
         path = Path(path)
-        text = read_text(path, what="training config (a YAML file)", max_bytes=MAX_CONFIG_BYTES)
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise InputError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
-        except RecursionError:
-            raise InputError(f"{path}: YAML nested too deeply") from None
-        if data is None:
-            raise InputError(f"{path}: empty; give at least one option (e.g. `rays: 1024`), "
-                             "or leave out --config for the defaults")
+        data = load_yaml(path, what="training config (a YAML file)", max_bytes=MAX_CONFIG_BYTES,
+                         empty="give at least one option (e.g. `rays: 1024`), or leave out "
+                               "--config for the defaults")
         return cls.from_dict(data, source=str(path))
 
     def dump(self) -> str:

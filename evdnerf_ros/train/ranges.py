@@ -17,10 +17,10 @@ Ranges (``[a, b]`` inclusive, ``(a, b]`` excludes a; ``int`` keys take whole num
 from __future__ import annotations
 
 import inspect
-import re
 
-from ..errors import InputError
-from ..limits import check_memory, check_number, format_bytes
+from .. import yamlcheck as yc
+from ..limits import check_memory, format_bytes
+from ..yamlcheck import Where, boolean, choice, show
 
 BIG = 10 ** 12          # iteration-like counts: far beyond any run, still finite
 
@@ -89,56 +89,24 @@ FIELD_KEYS = {
               "zero_deform_at_t0": ("bool",)},
 }
 
-_DECIMAL = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
-
-
-def _numeric(value):
-    """PyYAML reads ``1e-3`` (no dot) as text: take such plain decimals as numbers."""
-    if isinstance(value, str) and _DECIMAL.fullmatch(value.strip()):
-        return float(value) if any(c in value for c in ".eE") else int(value)
-    return value
-
-
-def show(value, limit: int = 60) -> str:
-    """repr for an error message, cut short (a config may hold a huge list by mistake)."""
-    text = repr(value)
-    return text if len(text) <= limit else text[:limit - 5] + " ...]"
-
-
-def number(value, name: str, low, high, kind: str, low_open: bool = False,
+def number(value, where: Where, low, high, kind: str, low_open: bool = False,
            allow_none: bool = False):
-    value = _numeric(value)
-    if isinstance(value, (str, bytes, list, tuple, dict)):
-        raise InputError(f"{name}: expected a number, got {show(value)}")
-    # the range first, so 1e30 for a count is shown as written
-    value = check_number(value, name, low=low, high=high, low_open=low_open,
-                         allow_none=allow_none)
-    if value is None:
-        return None
-    if kind == "int":
-        return int(check_number(value, name, integer=True))
+    """A number in its range (a plain decimal written as text counts: PyYAML reads ``1e-3``
+    as a string), as int for ``kind`` "int", else float."""
+    value = yc.number(value, where, low=low, high=high, low_open=low_open,
+                      integer=kind == "int", allow_none=allow_none, text_numbers=True)
+    if value is None or kind == "int":
+        return value
     return float(value)
 
 
-def boolean(value, name: str) -> bool:
-    if not isinstance(value, bool):
-        raise InputError(f"{name}: expected true or false, got {show(value)}")
-    return value
-
-
-def choice(value, name: str, choices) -> str:
-    if not isinstance(value, str) or value not in choices:
-        raise InputError(f"{name}: expected one of {', '.join(map(str, choices))}, got {show(value)}")
-    return value
-
-
-def number_list(value, name: str, low, high, kind: str, *, low_open=False, min_len=1,
+def number_list(value, where: Where, low, high, kind: str, *, low_open=False, min_len=1,
                 max_len=MAX_PHASES) -> list:
     if not isinstance(value, (list, tuple)):
-        raise InputError(f"{name}: expected a list of numbers, got {show(value)}")
+        where.fail(f"expected a list of numbers, got {show(value)}")
     if not min_len <= len(value) <= max_len:
-        raise InputError(f"{name}: expected {min_len} to {max_len} numbers, got {len(value)}")
-    return [number(v, f"{name}[{i}]", low, high, kind, low_open) for i, v in enumerate(value)]
+        where.fail(f"expected {min_len} to {max_len} numbers, got {len(value)}")
+    return [number(v, where / i, low, high, kind, low_open) for i, v in enumerate(value)]
 
 
 # ---------------------------------------------------------------------- the config
@@ -146,8 +114,10 @@ def check_config(cfg, source: str = "training config") -> None:
     """Check every key of ``cfg`` (a TrainConfig) in place; normalise numbers to int/float."""
     from ..field import BACKBONES
 
+    top = Where(source)
+
     def name(key):
-        return f"{source}: {key}"
+        return top / key
 
     cfg.backbone = choice(cfg.backbone, name("backbone"), sorted(BACKBONES))
     cfg.supervision = choice(cfg.supervision, name("supervision"), ("events", "frames"))
@@ -159,47 +129,47 @@ def check_config(cfg, source: str = "training config") -> None:
         setattr(cfg, key, number(getattr(cfg, key), name(key), low, high, kind, low_open,
                                  allow_none=key in NULLABLE))
     if not cfg.far > cfg.near:
-        raise InputError(f"{name('far')}: must be greater than near ({cfg.near}), got {cfg.far}")
+        name("far").fail(f"must be greater than near ({cfg.near}), got {cfg.far}")
     cfg.windows = number_list(cfg.windows, name("windows"), 1, MAX_WINDOWS, "int")
     cfg.window_switch = number_list(cfg.window_switch, name("window_switch"), 0.0, 1.0, "float",
                                     low_open=True, min_len=0)
     s, w = cfg.window_switch, cfg.windows
     if len(s) != len(w) - 1 or any(f >= 1.0 for f in s) or s != sorted(s):
-        raise InputError(f"{name('window_switch')}: must hold {len(w) - 1} increasing fractions "
-                         f"in (0, 1) (one per change of windows {w}), got {s}")
+        name("window_switch").fail(f"must hold {len(w) - 1} increasing fractions in (0, 1) (one "
+                                   f"per change of windows {w}), got {s}")
     if cfg.box is not None:
         cfg.box = check_box(cfg.box, name("box"))
     if cfg.learn_thresholds and cfg.supervision != "events":
-        raise InputError(f"{name('learn_thresholds')}: needs supervision: events")
+        name("learn_thresholds").fail("needs supervision: events")
     cfg.field = check_field(cfg.backbone, cfg.field, name("field"))
 
 
-def check_box(box, name: str) -> list:
+def check_box(box, where: Where) -> list:
     shape_ok = isinstance(box, (list, tuple)) and len(box) == 2 and all(
         isinstance(r, (list, tuple)) and len(r) == 3 for r in box)
     if not shape_ok:
-        raise InputError(f"{name}: expected [[xmin, ymin, zmin], [xmax, ymax, zmax]], got {show(box)}")
-    lo, hi = (number_list(r, f"{name}[{i}]", -MAX_BOX, MAX_BOX, "float", min_len=3, max_len=3)
+        where.fail(f"expected [[xmin, ymin, zmin], [xmax, ymax, zmax]], got {show(box)}")
+    lo, hi = (number_list(r, where / i, -MAX_BOX, MAX_BOX, "float", min_len=3, max_len=3)
               for i, r in enumerate(box))
     if not all(b > a for a, b in zip(lo, hi)):
-        raise InputError(f"{name}: each max must exceed its min, got {[lo, hi]}")
+        where.fail(f"each max must exceed its min, got {[lo, hi]}")
     return [lo, hi]
 
 
-def check_field(backbone: str, sizes, name: str) -> dict:
+def check_field(backbone: str, sizes, name: Where) -> dict:
     """The backbone's keyword sizes: known keys only, each in its range."""
     from ..field import BACKBONES
 
     if not isinstance(sizes, dict):
-        raise InputError(f"{name}: expected a mapping of {backbone} sizes, got {show(sizes)}")
+        name.fail(f"expected a mapping of {backbone} sizes, got {show(sizes)}")
     spec = FIELD_KEYS.get(backbone, {})
     known = [p for p in inspect.signature(BACKBONES[backbone].__init__).parameters
              if p != "self"]
     out = {}
     for key, value in sizes.items():
-        where = f"{name}.{key}"
+        where = name / str(key)
         if key not in known:
-            raise InputError(f"{where}: unknown size for backbone {backbone}; known: {', '.join(known)}")
+            where.fail(f"unknown size for backbone {backbone}; known: {', '.join(known)}")
         rule = spec.get(key)
         if rule is None:
             out[key] = value
@@ -210,7 +180,7 @@ def check_field(backbone: str, sizes, name: str) -> dict:
         elif rule[0] == "pair":
             pair = number_list(value, where, rule[1], rule[2], "float", min_len=2, max_len=2)
             if pair[0] > pair[1]:
-                raise InputError(f"{where}: expected [low, high] with low <= high, got {pair}")
+                where.fail(f"expected [low, high] with low <= high, got {pair}")
             out[key] = pair
         elif isinstance(rule[0], str):
             out[key] = choice(value, where, rule)

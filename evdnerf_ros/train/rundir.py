@@ -25,6 +25,10 @@ from ..errors import InputError
 from ..limits import check_memory
 
 LOCK_NAME = ".evdnerf-train.lock"
+#: The files of a run folder (``train/run.py`` reads them back as a ``TrainedRun``).
+CHECKPOINT_NAME = "checkpoint.pt"
+METRICS_NAME = "metrics.jsonl"
+CONFIG_NAME = "config.yaml"
 _LOCK_TEXT = "evdnerf_ros train"
 # file systems that cannot lock: run unlocked rather than not at all
 _NO_LOCKING = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS)

@@ -51,14 +51,13 @@ from .config import TrainConfig, _normal, resolve_config
 from .interrupts import DeferredInterrupts
 from .losses import bin_loss, mse_loss, no_event_hinge
 from .ranges import NUMBERS, check_training_memory
-from .rundir import LOCK_NAME, RunLock, truncate_metrics, write_text
+from .run import TrainedRun, train_set_record
+from .rundir import (CHECKPOINT_NAME, CONFIG_NAME, LOCK_NAME, METRICS_NAME, RunLock,
+                     truncate_metrics, write_text)
 from .sampler import FrameSampler, RaySampler, default_box
 from .thresholds import LearnedThresholds
 
 DEFAULT_ITERS = 2000
-CHECKPOINT_NAME = "checkpoint.pt"
-METRICS_NAME = "metrics.jsonl"
-CONFIG_NAME = "config.yaml"
 
 
 class TrainingDivergedError(EvdnerfError):
@@ -276,13 +275,17 @@ class Trainer:
                                       "minutes": self.minutes, "loss_sum": self._loss_sum,
                                       "loss_n": self._loss_n,
                                       "metrics_due": self._metrics_due,
-                                      "last_loss": self.last_loss})
+                                      "last_loss": self.last_loss,
+                                      "train_set": train_set_record(self.ts)})
 
-    def resume(self, path, data: dict | None = None) -> None:
+    def resume(self, path, data: "dict | TrainedRun | None" = None) -> None:
         """Continue from a checkpoint of this very run (same config); ``data``: the
-        checkpoint already read from ``path``."""
-        data = load_checkpoint(path) if data is None else data
-        theirs = TrainConfig.from_dict(data["config"], source=f"{path} (config)")
+        checkpoint (or the ``TrainedRun``) already read from ``path``."""
+        path = Path(path)
+        run = data if isinstance(data, TrainedRun) else TrainedRun(
+            path.parent, load_checkpoint(path) if data is None else data, checkpoint_path=path)
+        data = run.checkpoint
+        theirs = run.config
         diff = self.cfg.diff(theirs)
         if diff:
             their = data["config"]
@@ -293,9 +296,9 @@ class Trainer:
                 "resume with the checkpoint's config, or start a new run")
         self.field.load_state_dict(data["field"])
         self.opt.load_state_dict(data["optimizer"])
-        self.box = np.asarray(data["box"], np.float64)
-        self.iteration = int(data["iteration"])
-        ex = data.get("extra", {})
+        self.box = run.box
+        self.iteration = run.iteration
+        ex = run.extra
         self.train_s = float(ex.get("train_s", 0.0))
         self.elapsed_s = float(ex.get("elapsed_s", self.train_s))
         self.skipped = int(ex.get("skipped", 0))
@@ -303,12 +306,12 @@ class Trainer:
         self._loss_n = int(ex.get("loss_n", 0))
         self._metrics_due = bool(ex.get("metrics_due", False))
         self.last_loss = float(ex.get("last_loss", float("nan")))
-        if self.occupancy is not None and ex.get("occupied") is not None:
-            self.occupancy.occupied = ex["occupied"].clone()
+        if self.occupancy is not None and run.occupancy is not None:
+            self.occupancy.occupied = run.occupancy.occupied
         if self.thresholds is not None:
             self.thresholds.load_state_dict(ex["thresholds"])
-        if ex.get("dynamic") is not None:
-            self.dynamic = DynamicRegion(ex["dynamic"].clone())
+        if run.dynamic is not None:
+            self.dynamic = run.dynamic
         rng = data["rng"]
         set_global_rng_states(rng["global"])
         self.sampler.rng.bit_generator.state = rng["sampler"]
@@ -518,23 +521,23 @@ def _train_locked(train_h5, run_dir: Path, lock: RunLock, given, *, iters, minut
     if resume and init is not None:
         raise InputError(f"{run_dir}: already holds a checkpoint to resume; --init starts a new run "
                          "(choose another RUN or pass --overwrite)")
-    data = None
+    run = None
     if resume:
         try:
-            data = load_checkpoint(ckpt)
+            run = TrainedRun.load(run_dir)
         except CheckpointError as exc:
             raise CheckpointError(f"{exc}; or pass --overwrite to start {run_dir} afresh") from None
     if given is not None:
         cfg = given
     elif resume:
-        cfg = TrainConfig.from_dict(data["config"], source=f"{ckpt} (config)")
+        cfg = run.config
     else:
         cfg = TrainConfig()
     with TrainingSet(train_h5) as ts:
         tr = Trainer(ts, cfg, run_dir=run_dir, iters=iters, minutes=minutes, eval_fn=eval_fn,
                      log=log)
         if resume:
-            tr.resume(ckpt, data)
+            tr.resume(ckpt, run)
             dropped = truncate_metrics(metrics, tr.iteration)
             log(f"resuming {run_dir} at iteration {tr.iteration}" + (
                 f" (dropped {dropped} metrics lines from after that checkpoint)" if dropped else ""))

@@ -1,0 +1,138 @@
+"""The Renderer protocol: the scene renderer and the trained field both implement it, and the
+time sampler / event generator take either through the same code path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from evdnerf_ros.errors import InputError
+from evdnerf_ros.geometry.camera import PinholeCamera, look_at
+from evdnerf_ros.renderer import Renderer, along, check_renderer
+from evdnerf_ros.sim.generator import EventGenerator
+from evdnerf_ros.sim.render import SceneRenderer
+from evdnerf_ros.sim.sampling import simulate_renderer
+from evdnerf_ros.sim.scene import load_scene
+
+CAM = PinholeCamera.from_fov(24, 18, 50.0)
+
+
+def _field_run(tmp_path):
+    """A run folder holding an untrained planes field (static in time) and its records."""
+    from evdnerf_ros.field import make_field
+    from evdnerf_ros.train.checkpoint import save_checkpoint
+    from evdnerf_ros.train.config import TrainConfig
+
+    cfg = TrainConfig(n_samples=16, field=dict(resolutions=[8], time_resolution=4, features=4, hidden=8))
+    torch.manual_seed(3)
+    field = make_field(cfg.backbone, **cfg.field)
+    run = tmp_path / "run"
+    run.mkdir()
+    save_checkpoint(run / "checkpoint.pt", field=field, optimizer=None, iteration=7,
+                    config=cfg.to_dict(), backbone=cfg.backbone, rng={},
+                    box=[[-1, -1, -1], [1, 1, 1]],
+                    extra={"train_set": {"time_range_ns": [5_000, 1_000_005_000],
+                                         "thresholds": [0.25, 0.15]}})
+    return run
+
+
+def _renderers(tmp_path):
+    from evdnerf_ros.train.run import TrainedRun
+
+    scene = SceneRenderer(load_scene("fork", check_cameras=False), CAM, 1)
+    field = TrainedRun.load(_field_run(tmp_path)).renderer(CAM)
+    return {"scene": scene, "field": field}
+
+
+def _moving_pose(t_ns: int) -> np.ndarray:
+    """A camera circling the origin, 3 m away (int64 ns in, 4x4 out)."""
+    a = 2 * np.pi * (int(t_ns) / 1e9) * 0.2
+    return look_at([3.0 * np.sin(a), -3.0 * np.cos(a), 0.8], [0.0, 0.0, 0.2])
+
+
+@pytest.mark.parametrize("kind", ["scene", "field"])
+def test_both_renderers_implement_the_protocol(tmp_path, kind):
+    r = _renderers(tmp_path)[kind]
+    assert isinstance(r, Renderer) and check_renderer(r) is r
+    assert (r.width, r.height) == (CAM.width, CAM.height) and r.camera is CAM
+    T = _moving_pose(0)
+    img = r.render(T, 100_000_000)
+    assert img.shape == (CAM.height, CAM.width) and img.dtype == np.float32
+    assert np.all(np.isfinite(img)) and np.all(img >= 0) and img.max() > 0
+    np.testing.assert_array_equal(r(T, 100_000_000), img)           # calling it is the same
+    for bad in (0.1, 1.5, "1"):                                      # times are int64 ns only
+        with pytest.raises(InputError, match="nanoseconds"):
+            r.render(T, bad)
+    with pytest.raises(InputError, match="T_world_cam"):
+        r.render(2 * np.eye(4), 0)
+
+
+def test_scene_renderer_result_and_intensity_agree():
+    r = SceneRenderer(load_scene("fork", check_cameras=False), CAM, 2)
+    T = _moving_pose(0)
+    res = r.render_result(T, 300_000_000)
+    np.testing.assert_array_equal(res.intensity, r.render(T, 300_000_000))
+    assert res.depth.shape == res.mask.shape == (CAM.height, CAM.width) and res.mask.any()
+
+
+@pytest.mark.parametrize("kind", ["scene", "field"])
+def test_the_generator_takes_either_renderer(tmp_path, kind):
+    """Fixed-rate sampling through `along` gives exactly the events of the frames rendered
+    by hand at the same times and fed to the generator."""
+    r = _renderers(tmp_path)[kind]
+    t0, t1, rate = 0, 200_000_000, 100.0
+    gen = EventGenerator(r.width, r.height, c_pos=0.1, c_neg=0.1)
+    events, stats = simulate_renderer(along(r, _moving_pose), t0, t1, gen, mode="fixed", rate_hz=rate)
+    times = np.arange(t0, t1 + 1, 10_000_000, dtype=np.int64)
+    ref = EventGenerator(r.width, r.height, c_pos=0.1, c_neg=0.1)
+    frames = np.stack([r.render(_moving_pose(int(t)), int(t)) for t in times])
+    expect = ref.generate(frames, times)
+    assert events.size > 100, "a circling camera must see changes"
+    np.testing.assert_array_equal(events, expect)
+    assert np.all(np.diff(events["t"]) >= 0) and events["t"].min() > t0 and events["t"].max() <= t1
+
+
+def test_along_a_fixed_pose_and_bad_renderers():
+    r = SceneRenderer(load_scene("fork", check_cameras=False), CAM, 1)
+    T = _moving_pose(0)
+    np.testing.assert_array_equal(along(r, T)(400_000_000), r.render(T, 400_000_000))
+    with pytest.raises(InputError, match="4x4"):
+        along(r, np.eye(3))
+    with pytest.raises(InputError, match="not a Renderer.*render"):
+        along(lambda T, t: None, T)
+    assert not isinstance(object(), Renderer)
+
+
+def test_field_renderer_time_mapping_and_leave_out(tmp_path):
+    """Scene time maps to the field's 0..1 over the training span (clamped); leave-out
+    renders fewer rays and the same image."""
+    from evdnerf_ros.train.run import TrainedRun
+
+    run = TrainedRun.load(_field_run(tmp_path))
+    r = run.renderer(CAM)                                            # the training set's span
+    assert r.duration_ns == 1_000_000_000
+    assert r.normalized_time(500_000_000) == 0.5 and r.normalized_time(-10) == 0.0
+    assert r.normalized_time(10**18) == 1.0
+    shifted = run.renderer(CAM, duration_ns=2_000_000_000, t_origin_ns=10**12)
+    assert shifted.normalized_time(10**12 + 500_000_000) == 0.25
+    with pytest.raises(InputError, match="positive whole number of nanoseconds"):
+        run.renderer(CAM, duration_ns=0)
+    full = run.renderer(CAM, leave_out=False)
+    T = look_at([0.0, -4.0, 0.5], [0.0, 0.0, 0.0])
+    np.testing.assert_allclose(r.render(T, 0), full.render(T, 0), rtol=0, atol=1e-6)
+    assert full.rays_rendered == full.rays_total == CAM.width * CAM.height
+    assert r.rays_rendered <= r.rays_total == CAM.width * CAM.height
+
+
+def test_publisher_sources_are_renderers(tmp_path):
+    from evdnerf_ros.nodes.sources import FieldSource, SceneSource
+
+    scene = SceneSource("fork", CAM)
+    field = FieldSource(_field_run(tmp_path), CAM, duration_ns=10**9)
+    for src, kind in ((scene, "scene"), (field, "field")):
+        assert isinstance(src, Renderer) and src.kind == kind
+        img = src.render(_moving_pose(0), 0)
+        assert img.shape == (CAM.height, CAM.width) and src.rays_total > 0
+    with pytest.raises(InputError, match="field_duration"):
+        FieldSource(tmp_path / "run", CAM, duration_ns=0)
