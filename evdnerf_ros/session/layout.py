@@ -26,12 +26,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from ..errors import InputError
 from ..geometry.poses import check_rigid
-from ..io.guard import read_text
-from ..limits import check_number
+from ..yamlcheck import Where, is_number, load_yaml, mapping, matrix, number_in, text_in, type_name
 from ..io.trainingset import C_MAX, T_LIMIT
 from ..topics import EVENTS, SERVO_TRIGGER
 
@@ -98,7 +96,7 @@ def load_session(root) -> Session:
     if not path.is_file():
         raise InputError(f"{root}: no session.yaml; a session folder is what `evdnerf simulate` "
                          "or the capture node writes")
-    data = _parse_yaml(path)
+    data = load_yaml(path, what="session.yaml")
     return _check_session(root, path, data)
 
 
@@ -108,18 +106,6 @@ def check_session(root, data, *, path=None) -> Session:
     ``<root>/session.yaml``) and the key at fault. Returns the Session it describes."""
     root = Path(root)
     return _check_session(root, Path(path) if path is not None else session_yaml_path(root), data)
-
-
-def _parse_yaml(path: Path):
-    text = read_text(path, what="session.yaml")
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise InputError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
-    except RecursionError:
-        raise InputError(f"{path}: nested too deeply to be a session file") from None
-    except (ValueError, OverflowError) as exc:     # e.g. a timestamp PyYAML cannot represent
-        raise InputError(f"{path}: not a usable YAML document ({exc})") from None
 
 
 # =========================================================================== schema
@@ -132,137 +118,53 @@ def _parse_yaml(path: Path):
 SIZE_MAX = 65535
 
 
-class _Where:
-    """Names a key the way a user finds it: `<path>: views[3].T_world_cam`."""
-
-    def __init__(self, path: Path, key: str = ""):
-        self.path, self.key = path, key
-
-    def __truediv__(self, sub) -> "_Where":
-        if isinstance(sub, int):
-            return _Where(self.path, f"{self.key}[{sub}]")
-        return _Where(self.path, f"{self.key}.{sub}" if self.key else str(sub))
-
-    def __str__(self) -> str:
-        return f"{self.path}: {self.key}" if self.key else str(self.path)
-
-    def error(self, msg: str) -> InputError:
-        return InputError(f"{self}: {msg}")
-
-
-def _mapping(value, where: _Where, *, required: bool = True) -> dict | None:
-    if value is None and not required:
-        return None
-    if not isinstance(value, dict):
-        what = "missing" if value is None else f"a {_type_name(value)}"
-        raise where.error(f"must be a mapping (key: value lines), but it is {what}")
-    return value
-
-
-def _type_name(value) -> str:
-    return {dict: "mapping", list: "list", str: "string", bool: "boolean", int: "number",
-            float: "number"}.get(type(value), type(value).__name__)
-
-
-def _number(sec: dict, key: str, where: _Where, *, required: bool = True, **limits):
-    value = sec.get(key)
-    if value is None:
-        if required:
-            raise (where / key).error("is missing; it is required")
-        return None
-    if isinstance(value, str):
-        try:
-            float(value)
-        except ValueError:
-            pass
-        else:   # YAML 1.1 reads 1e-3 (no dot) as text
-            raise (where / key).error(f"expected a number, got the text {value!r} (YAML reads exponents "
-                                      "without a dot as text: write 0.001 or 1.0e-3)")
-    return check_number(value, str(where / key), **limits)
-
-
-def _text(sec: dict, key: str, where: _Where, *, required: bool = False, default=None) -> str | None:
-    value = sec.get(key)
-    value = default if value is None else value
-    if value is None:
-        if required:
-            raise (where / key).error("is missing; it is required")
-        return None
-    if not isinstance(value, str) or not value:
-        raise (where / key).error(f"must be a non-empty string, got {value!r}")
-    return value
-
-
-def _matrix(value, shape, where: _Where) -> np.ndarray:
-    ok = isinstance(value, list) and len(value) == shape[0] and all(
-        isinstance(row, list) and len(row) == shape[1] for row in value)
-    if not ok:
-        raise where.error(f"must be a {shape[0]}x{shape[1]} matrix (a list of {shape[0]} rows of "
-                          f"{shape[1]} numbers)")
-    for i, row in enumerate(value):
-        for j, v in enumerate(row):
-            if not _is_number(v):
-                raise where.error(f"entry [{i}][{j}] must be a number of plausible size, got {str(v)[:40]}")
-    m = np.asarray(value, np.float64)
-    if not np.all(np.isfinite(m)):
-        raise where.error("contains NaN or inf (or a number too large for a float)")
-    if m.size and np.abs(m).max() > 1e12:
-        raise where.error(f"holds entries of magnitude {np.abs(m).max():.3g}; not a plausible calibration")
-    return m
-
-
-def _is_number(v) -> bool:
-    """A YAML number a float can hold (YAML integers may have any number of digits)."""
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and not (isinstance(v, int) and abs(v) > 10**300)
-
-
-def _int_ns(sec: dict, key: str, where: _Where, *, required: bool = False):
-    return _number(sec, key, where, required=required, integer=True, low=-T_LIMIT, high=T_LIMIT)
+def _int_ns(sec: dict, key: str, where: Where, *, required: bool = False):
+    return number_in(sec, key, where, required=required, integer=True, low=-T_LIMIT, high=T_LIMIT)
 
 
 def _check_session(root: Path, path: Path, data) -> Session:
-    top = _Where(path)
+    top = Where(path)
     if not isinstance(data, dict) or data.get("format") != SESSION_FORMAT:
         raise InputError(f"{path}: not a session file (format must be {SESSION_FORMAT!r})")
     if data.get("format_version") != SESSION_FORMAT_VERSION or isinstance(data.get("format_version"), bool):
         raise InputError(f"{path}: format_version {data.get('format_version')!r} is not supported "
                          f"(this toolkit reads version {SESSION_FORMAT_VERSION})")
     w = top / "camera"
-    cam = _mapping(data.get("camera"), w)
-    width = _number(cam, "width", w, integer=True, low=1, high=SIZE_MAX)
-    height = _number(cam, "height", w, integer=True, low=1, high=SIZE_MAX)
-    K = _matrix(cam.get("K"), (3, 3), w / "K")
+    cam = mapping(data.get("camera"), w)
+    width = number_in(cam, "width", w, integer=True, low=1, high=SIZE_MAX)
+    height = number_in(cam, "height", w, integer=True, low=1, high=SIZE_MAX)
+    K = matrix(cam.get("K"), (3, 3), w / "K")
     if not (K[0, 0] > 0 and K[1, 1] > 0) or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
         raise (w / "K").error(f"is not a pinhole intrinsic matrix (need fx, fy > 0 and last row [0, 0, 1]); "
                               f"got {K.tolist()}")
     D = cam.get("D", [0.0] * 5)
-    if not isinstance(D, list) or len(D) > 14 or not all(_is_number(v) for v in D) \
+    if not isinstance(D, list) or len(D) > 14 or not all(is_number(v) for v in D) \
             or not np.all(np.isfinite(np.asarray(D, np.float64))):
         raise (w / "D").error("must be a list of at most 14 finite numbers (distortion coefficients)")
     D = np.asarray(D, np.float64)
     if cam.get("topics") is not None:
         tw = w / "topics"
-        topics = _mapping(cam["topics"], tw)
+        topics = mapping(cam["topics"], tw)
         for k in topics:
             _topic(topics, k, tw)
     w = top / "thresholds"
-    th = _mapping(data.get("thresholds"), w)
-    c_pos = float(_number(th, "c_pos", w, low=0, low_open=True, high=C_MAX))
-    c_neg = float(_number(th, "c_neg", w, low=0, low_open=True, high=C_MAX))
-    eps = _number(th, "eps", w, required=False, low=0, low_open=True, high=1.0)
-    time_sec = _mapping(data.get("time"), top / "time", required=False) or {}
+    th = mapping(data.get("thresholds"), w)
+    c_pos = float(number_in(th, "c_pos", w, low=0, low_open=True, high=C_MAX))
+    c_neg = float(number_in(th, "c_neg", w, low=0, low_open=True, high=C_MAX))
+    eps = number_in(th, "eps", w, required=False, low=0, low_open=True, high=1.0)
+    time_sec = mapping(data.get("time"), top / "time", optional=True) or {}
     for k in ("scene_start_ns", "scene_end_ns", "motion_start_ns", "motion_end_ns"):
         _int_ns(time_sec, k, top / "time")
     ms, me = time_sec.get("motion_start_ns"), time_sec.get("motion_end_ns")
     if ms is not None and me is not None and me <= ms:
         raise (top / "time" / "motion_end_ns").error(f"{me} must be after motion_start_ns {ms}")
-    servo = _mapping(data.get("servo"), top / "servo", required=False)
+    servo = mapping(data.get("servo"), top / "servo", optional=True)
     if servo is not None:
         for k in ("trigger", "joint_states"):
             _topic(servo, k, top / "servo")
         _int_ns(servo, "start_ns_scene", top / "servo")
     if data.get("scene_bounds") is not None:
-        b = _matrix(data["scene_bounds"], (2, 3), top / "scene_bounds")
+        b = matrix(data["scene_bounds"], (2, 3), top / "scene_bounds")
         if np.any(b[1] < b[0]):
             raise (top / "scene_bounds").error("must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with max >= min")
     raw_views = data.get("views")
@@ -275,15 +177,15 @@ def _check_session(root: Path, path: Path, data) -> Session:
                    eps=None if eps is None else float(eps), views=views, servo=servo, time=time_sec, data=data)
 
 
-def _topic(sec: dict, key: str, where: _Where) -> None:
+def _topic(sec: dict, key: str, where: Where) -> None:
     value = sec.get(key)
     if value is not None and (not isinstance(value, str) or not value.startswith("/")):
         raise (where / key).error(f"must be an absolute topic name such as '/event_camera/events', got {value!r}")
 
 
-def _check_view(root: Path, v, where: _Where, seen: set) -> ViewRecord:
+def _check_view(root: Path, v, where: Where, seen: set) -> ViewRecord:
     if not isinstance(v, dict):
-        raise where.error(f"must be a mapping with name, bag, split, T_world_cam; got a {_type_name(v)}")
+        raise where.error(f"must be a mapping with name, bag, split, T_world_cam; got a {type_name(v)}")
     name = v.get("name")
     if not isinstance(name, str) or not name or "/" in name or name in (".", ".."):
         raise (where / "name").error(f"needs a `name`: a non-empty string without '/', got {name!r}")
@@ -293,19 +195,19 @@ def _check_view(root: Path, v, where: _Where, seen: set) -> ViewRecord:
     split = v.get("split", "train")
     if split not in SPLITS:
         raise (where / "split").error(f"view {name}: split {split!r} is not one of {SPLITS}")
-    bag = _text(v, "bag", where, default=name)
-    T = _matrix(v.get("T_world_cam"), (4, 4), where / "T_world_cam")
+    bag = text_in(v, "bag", where, default=name)
+    T = matrix(v.get("T_world_cam"), (4, 4), where / "T_world_cam")
     try:
         check_rigid(T, f"view {name}: T_world_cam")
     except InputError as exc:
         raise (where / "T_world_cam").error(str(exc)) from None
-    azimuth = _number(v, "azimuth_deg", where, required=False, low=-1e6, high=1e6)
-    frames = _text(v, "frames", where)
-    gt = _mapping(v.get("ground_truth"), where / "ground_truth", required=False)
+    azimuth = number_in(v, "azimuth_deg", where, required=False, low=-1e6, high=1e6)
+    frames = text_in(v, "frames", where)
+    gt = mapping(v.get("ground_truth"), where / "ground_truth", optional=True)
     if gt is not None:
         for k in ("clock_offset_ns", "device_offset_ns"):
             _int_ns(gt, k, where / "ground_truth")
-    sync = _mapping(v.get("sync"), where / "sync", required=False)
+    sync = mapping(v.get("sync"), where / "sync", optional=True)
     if sync is not None:
         _int_ns(sync, "offset_ns", where / "sync")
     return ViewRecord(name=name, bag=root / bag, split=split,
