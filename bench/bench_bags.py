@@ -15,22 +15,17 @@ Writes bench/results/bags.json and bench/results/bags.png.
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
 import shutil
 import statistics
 import sys
 import tempfile
 import time
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from _common import (arg_parser, describe, interleaved, load_average, machine, peak_traced_bytes, pyplot,
+                     save_figure, write_results)
 
 from evdnerf_ros.events.types import make_events  # noqa: E402
 from evdnerf_ros.io.rosbag1 import Rosbag1Writer  # noqa: E402
@@ -75,14 +70,7 @@ def bag_bytes(path: Path) -> int:
 
 
 def peak_mb(fn) -> float:
-    tracemalloc.start()
-    tracemalloc.reset_peak()
-    try:
-        fn()
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
-    return peak / 2**20
+    return peak_traced_bytes(fn) / 2**20
 
 
 def bench_case(tmp: Path, events, encoding, storage, repeats, packet_ns, *, memory=True):
@@ -156,15 +144,9 @@ def bench_peer(events, repeats, packet_ns):
         return np.concatenate(parts)
 
     assert np.array_equal(read(), events)
-    wt, rt = [], []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        write()
-        wt.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        read()
-        rt.append(time.perf_counter() - t0)
-    w, r = statistics.median(wt), statistics.median(rt)
+    tm = interleaved({"write": write, "read": read}, repeats, warmup=False)   # both ran above
+    wt, rt = tm["write"]["runs_s"], tm["read"]["runs_s"]
+    w, r = tm["write"]["median_s"], tm["read"]["median_s"]
     return {
         "label": f"rosbags per-object Event[] serialize_cdr / deserialize_cdr, {n} events "
                  "(serialisation only, no bag I/O), extrapolated per Mev",
@@ -196,15 +178,10 @@ def _panel(ax, cases, peer, title):
 
 
 def plot(result, path: Path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     m = result["meta"]
     sparse = result.get("sparse")
-    fig, axes = plt.subplots(1, 2 if sparse else 1, figsize=(16 if sparse else 11, 5.5), squeeze=False,
-                             gridspec_kw={"width_ratios": [6, 5] if sparse else [1]})
+    fig, axes = pyplot().subplots(1, 2 if sparse else 1, figsize=(16 if sparse else 11, 5.5), squeeze=False,
+                                  gridspec_kw={"width_ratios": [6, 5] if sparse else [1]})
     _panel(axes[0, 0], result["cases"], result["peer"],
            f"dense: {m['events']:.3g} events at {m['rate_ev_s']:.3g} ev/s = "
            f"{m['rate_ev_s'] * m['packet_ns'] / 1e9:.0f} events per {m['packet_ns'] / 1e6:g} ms packet")
@@ -221,9 +198,7 @@ def plot(result, path: Path):
               if "error" in c]
     if failed:
         fig.text(0.01, 0.01, "FAILED (not shown): " + " | ".join(failed), fontsize=7, color="crimson")
-    fig.tight_layout(rect=(0, 0.04 if failed else 0, 1, 1))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110, layout={"rect": (0, 0.04 if failed else 0, 1, 1)})
 
 
 def run_cases(events, repeats, packet_ns, *, memory=True):
@@ -248,7 +223,7 @@ def run_cases(events, repeats, packet_ns, *, memory=True):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = arg_parser(__doc__, quick="2e5 events, 3 repeats, 5e3 peer events, small sparse run")
     ap.add_argument("--events", type=float, default=5e6, help="events per case (default 5e6)")
     ap.add_argument("--rate", type=float, default=5e6, help="event rate in ev/s (sets events per 1 ms packet)")
     ap.add_argument("--sparse-events", type=float, default=2e6,
@@ -257,22 +232,17 @@ def main(argv=None):
     ap.add_argument("--packet-ns", type=int, default=1_000_000)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--peer-events", type=float, default=2e4)
-    ap.add_argument("--quick", action="store_true", help="2e5 events, 3 repeats, 5e3 peer events, small sparse run")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
     args = ap.parse_args(argv)
     if args.quick:
         args.events, args.repeats, args.peer_events, args.sparse_events = 2e5, 3, 5e3, 2e5
     n = int(args.events)
     events = synth_events(n, args.rate)
-    args.out.mkdir(parents=True, exist_ok=True)
-    from importlib.metadata import version
-
+    host = machine("rosbags")
     meta = {
         "events": n, "rate_ev_s": args.rate, "span_s": (int(events["t"][-1]) - int(events["t"][0])) / 1e9,
         "width": W, "height": H, "packet_ns": args.packet_ns, "repeats": args.repeats,
-        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs", "python": platform.python_version(),
-        "numpy": np.__version__, "rosbags": version("rosbags"), "date": time.strftime("%Y-%m-%d %H:%M:%S"),
-        "goal_mev_s": GOAL_MEV_S, "load_average_at_start": os.getloadavg(),
+        "machine": describe(host), "python": host["python"], "numpy": host["numpy"], "rosbags": host["rosbags"],
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"), "goal_mev_s": GOAL_MEV_S, "load_average_at_start": load_average(),
     }
     result = {"meta": meta}
     print(f"dense: {n} events at {args.rate:g} ev/s", flush=True)
@@ -293,14 +263,12 @@ def main(argv=None):
         result["sparse"] = {"meta": {"events": ns, "rate_ev_s": args.sparse_rate, "repeats": srep,
                                      "span_s": (int(sev["t"][-1]) - int(sev["t"][0])) / 1e9},
                             "cases": cases}
-    meta["load_average_at_end"] = os.getloadavg()
+    meta["load_average_at_end"] = load_average()
     ok = [c for c in result["cases"] if "error" not in c and c["encoding"] == "array" and c["storage"] == "mcap"]
     if ok:
         result["speedup_event_array_mcap_vs_peer"] = {"write": ok[0]["write_mev_s"] / p["write_mev_s"],
                                                       "read": ok[0]["read_mev_s"] / p["read_mev_s"]}
-    (args.out / "bags.json").write_text(json.dumps(result, indent=2))
-    plot(result, args.out / "bags.png")
-    print(f"wrote {args.out / 'bags.json'} and {args.out / 'bags.png'}")
+    write_results(args.out, "bags", result, plot)
     return 1 if failed else 0
 
 

@@ -20,24 +20,20 @@ peer decodes the same count and x / y / p from it but misreads its times.
 
 from __future__ import annotations
 
-import argparse
-import gc
 import json
 import os
-import platform
 import shutil
 import statistics
 import subprocess
 import sys
-import time
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))     # synthetic_events: a test-only generator
+from _common import (ROOT, TESTS, arg_parser, interleaved, load_average, machine, peak_traced_bytes, pyplot,
+                     save_figure, write_results)
+
+sys.path.insert(0, str(TESTS))     # synthetic_events: a test-only generator
 
 from evdnerf_ros.events.codecs import decode, encode  # noqa: E402
 from evdnerf_ros.io.raw import read_raw, write_raw  # noqa: E402
@@ -64,53 +60,12 @@ def peer_matches(arr, src, *, times=True) -> bool:
     return arr is not None and arr.size == src.size and all(np.array_equal(arr[k], ref[k]) for k in keys)
 
 
-def timed(fn):
-    gc.collect()
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0
-
-
-def interleaved(fns: dict, repeats: int) -> dict:
-    """Median seconds per function; the functions take turns in every round."""
-    times = {k: [] for k in fns}
-    for f in fns.values():        # warm-up (page cache, allocator)
-        f()
-    for _ in range(repeats):
-        for k, f in fns.items():
-            times[k].append(timed(f))
-    return {k: {"median_s": statistics.median(v), "min_s": min(v), "runs_s": v} for k, v in times.items()}
-
-
-def peak_traced(fn) -> int:
-    gc.collect()
-    tracemalloc.start()
-    try:
-        fn()
-        return tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
-
-
 def machine_info() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import expelliarmus  # noqa: F401
-    from importlib.metadata import version
-    return {
-        "cpu": cpu, "logical_cpus": os.cpu_count(), "platform": platform.platform(),
-        "python": platform.python_version(), "numpy": np.__version__,
-        "numba": version("numba"), "expelliarmus": version("expelliarmus"),
-        "loadavg_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
-        "git_head": subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-                                   capture_output=True, text=True).stdout.strip() or None,
-    }
+    import expelliarmus  # noqa: F401 - fail here, before anything is written, when the peer is missing
+
+    info = machine("numba", "expelliarmus")
+    info.update(logical_cpus=info["cpus"], loadavg_start=load_average())
+    return info
 
 
 COLD_START_CODE = r"""
@@ -167,16 +122,14 @@ def cold_start(tmp: Path, repeats: int = 3) -> dict:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = arg_parser(__doc__, quick="~2e5 events, for a smoke run", out_aliases=("--out-dir",))
     ap.add_argument("--events", type=int, default=5_000_000)
-    ap.add_argument("--quick", action="store_true", help="~2e5 events, for a smoke run")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--out-dir", default=str(ROOT / "bench" / "results"))
     args = ap.parse_args(argv)
     n = 200_000 if args.quick else args.events
     from expelliarmus import Wizard
 
-    out_dir = Path(args.out_dir)
+    out_dir = args.out
     tmp = out_dir / "tmp"
     tmp.mkdir(parents=True, exist_ok=True)
     info = machine_info()
@@ -228,10 +181,10 @@ def main(argv=None):
         if peer_exact and not check["peer_values_equal_source"]:
             raise SystemExit(f"{name}: peer output differs from source: {check}")
         del ours_d, theirs
-        tm = interleaved({
+        tm = interleaved({                      # warm-up call each (page cache, allocator)
             "ours": lambda: read_raw(path, **kw),
             "peer": lambda: peer_read(path, enc),
-        }, args.repeats)
+        }, args.repeats, collect=True)
         row = {
             "file": path.name, "file_bytes": path.stat().st_size,
             "bytes_per_event": round(path.stat().st_size / n, 3), "checks": check,
@@ -257,7 +210,7 @@ def main(argv=None):
 
         assert np.array_equal(decode(encode(src, enc), enc).events, src)
         tm = interleaved({"ours_bytes": lambda: encode(src, enc), "ours_file": ours_file,
-                          "peer_file": peer_file}, args.repeats)
+                          "peer_file": peer_file}, args.repeats, collect=True)
         row = {k: n / v["median_s"] / 1e6 for k, v in tm.items()}
         row = {f"{k}_mev_s": v for k, v in row.items()}
         row["ratio_ours_file_over_peer_file"] = row["ours_file_mev_s"] / row["peer_file_mev_s"]
@@ -272,13 +225,13 @@ def main(argv=None):
     mev = n / 1e6
     peer_itemsize = int(peer_read(files["evt2_peer"], "evt2").dtype.itemsize)
     mem = {}
-    mem["decode evt3 (peer file) ours"] = peak_traced(lambda: read_raw(files["evt3_peer"], time_low_carry=True))
-    mem["decode evt3 (peer file) peer"] = peak_traced(lambda: peer_read(files["evt3_peer"], "evt3"))
-    mem["decode evt2 (peer file) ours"] = peak_traced(lambda: read_raw(files["evt2_peer"]))
-    mem["decode evt2 (peer file) peer"] = peak_traced(lambda: peer_read(files["evt2_peer"], "evt2"))
-    mem["decode evt3 (our file) ours"] = peak_traced(lambda: read_raw(files["evt3_ours"]))
-    mem["encode evt3 bytes ours"] = peak_traced(lambda: encode(src, "evt3"))
-    mem["encode evt2 bytes ours"] = peak_traced(lambda: encode(src, "evt2"))
+    mem["decode evt3 (peer file) ours"] = peak_traced_bytes(lambda: read_raw(files["evt3_peer"], time_low_carry=True))
+    mem["decode evt3 (peer file) peer"] = peak_traced_bytes(lambda: peer_read(files["evt3_peer"], "evt3"))
+    mem["decode evt2 (peer file) ours"] = peak_traced_bytes(lambda: read_raw(files["evt2_peer"]))
+    mem["decode evt2 (peer file) peer"] = peak_traced_bytes(lambda: peer_read(files["evt2_peer"], "evt2"))
+    mem["decode evt3 (our file) ours"] = peak_traced_bytes(lambda: read_raw(files["evt3_ours"]))
+    mem["encode evt3 bytes ours"] = peak_traced_bytes(lambda: encode(src, "evt3"))
+    mem["encode evt2 bytes ours"] = peak_traced_bytes(lambda: encode(src, "evt2"))
     results["memory"] = {
         "method": "tracemalloc peak over the call (numpy buffers are traced; excludes the "
                   "input array already in memory; the numba kernels write into numpy-allocated "
@@ -294,7 +247,7 @@ def main(argv=None):
               f"{1e3 * row['first_decode_evt3_s']:.0f} ms / evt2 {1e3 * row['first_decode_evt2_s']:.0f} ms, "
               f"first encode evt3 {1e3 * row['first_encode_evt3_s']:.0f} ms / evt2 "
               f"{1e3 * row['first_encode_evt2_s']:.0f} ms")
-    results["machine"]["loadavg_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
+    results["machine"]["loadavg_end"] = load_average()
     results["summary"] = {
         "decode_ratio_evt3_peer_file": results["decode"]["evt3 (peer-written file)"]["ratio_ours_over_peer"],
         "decode_ratio_evt2_peer_file": results["decode"]["evt2 (peer-written file)"]["ratio_ours_over_peer"],
@@ -302,20 +255,13 @@ def main(argv=None):
         "decode_ratio_evt2_our_file": results["decode"]["evt2 (our file)"]["ratio_ours_over_peer"],
     }
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with open(out_dir / "codecs.json", "w") as f:
-        json.dump(results, f, indent=2, default=float)
-    plot(results, out_dir / "codecs.png")
+    write_results(out_dir, "codecs", results, plot)
     shutil.rmtree(tmp, ignore_errors=True)
-    print(f"wrote {out_dir / 'codecs.json'} and {out_dir / 'codecs.png'}")
     return results
 
 
 def plot(results, path):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     dec = results["decode"]
     enc = results["encode"]
     labels = [f"decode\n{k}" for k in dec] + [f"encode {k}\n(to RAW file)" for k in enc]
@@ -345,9 +291,7 @@ def plot(results, path):
                  f"{1e3 * c['first_decode_evt3_s']:.0f} ms with cached kernels, "
                  f"{1e3 * u['first_decode_evt3_s']:.0f} ms compiling them (empty numba cache)")
     fig.text(0.01, 0.01, note, fontsize=7)
-    fig.tight_layout(rect=(0, 0.05, 1, 1))
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120, layout={"rect": (0, 0.05, 1, 1)})
 
 
 if __name__ == "__main__":

@@ -27,10 +27,7 @@ Usage:  python bench/bench_convert.py [--quick] [--sizes 1e6 5e6 25e6] [--tmp DI
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
-import platform
 import resource
 import shutil
 import subprocess
@@ -41,15 +38,13 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from _common import ROOT, arg_parser, describe, load_average, machine, pyplot, read_results, save_figure, write_results
 
 from evdnerf_ros.events.types import EVENT_DTYPE  # noqa: E402
 from evdnerf_ros.io.messages import camera_info, pose_stamped  # noqa: E402
 from evdnerf_ros.io.rosbag2 import BagWriter  # noqa: E402
 from evdnerf_ros.session.layout import SESSION_FORMAT, SESSION_FORMAT_VERSION  # noqa: E402
 
-RESULTS = ROOT / "bench" / "results"
 W, H = 1280, 720
 K = [[900.0, 0.0, 639.5], [0.0, 900.0, 359.5], [0.0, 0.0, 1.0]]
 VIEWS = 4
@@ -215,15 +210,10 @@ def read_bench(path: Path, seed: int = 0) -> dict:
 
 
 def plot(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     rows = [r for r in result["runs"] if r["compression"] == "scaleoffset"]
     gz = [r for r in result["runs"] if r["compression"] == "gzip"]
     ev = np.array([r["events"] for r in rows], float)
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, ax = pyplot().subplots(1, 2, figsize=(11, 4.2))
     ax[0].plot(ev, [r["convert_mev_s"] for r in rows], "o-", label="convert, scaleoffset (default)")
     if gz:
         ax[0].plot([r["events"] for r in gz], [r["convert_mev_s"] for r in gz], "s", label="convert, gzip")
@@ -245,34 +235,29 @@ def plot(result: dict, path: Path) -> None:
     ax[1].legend(fontsize=8)
     fig.suptitle(f"evdnerf convert: {W}x{H}, 4 views, MCAP evt3 -> TRAIN.h5 ({result['meta']['machine']})",
                  fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="sizes 2e5 and 1e6 events per view")
+    ap = arg_parser(__doc__, quick="sizes 2e5 and 1e6 events per view")
     ap.add_argument("--sizes", type=float, nargs="+", default=None, help="events per view (default 1e6 5e6 25e6)")
     ap.add_argument("--tmp", type=Path, default=None, help="scratch folder (needs ~1.2 GB for 1e8 events)")
-    ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--replot", action="store_true", help="only redraw the PNG from the existing JSON")
     args = ap.parse_args(argv)
+    stem = "convert.quick" if args.quick else "convert"
     if args.replot:
-        stem = "convert.quick" if args.quick else "convert"
-        plot(json.loads((args.out / f"{stem}.json").read_text()), args.out / f"{stem}.png")
+        plot(read_results(args.out, stem), args.out / f"{stem}.png")
         return 0
     sizes = args.sizes or ([2e5, 1e6] if args.quick else [1e6, 5e6, 25e6])
     sizes = [int(s) for s in sizes]
     gzip_size = sizes[len(sizes) // 2] if len(sizes) > 1 else sizes[0]
-    stem = "convert.quick" if args.quick else "convert"
-    args.out.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix="bench_convert.", dir=args.tmp))
-    result = {"meta": {"machine": f"{platform.machine()}, {os.cpu_count()} CPUs", "python": platform.python_version(),
-                       "numpy": np.__version__, "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+    host = machine("h5py")
+    result = {"meta": {"machine": describe(host), "python": host["python"],
+                       "numpy": host["numpy"], "h5py": host["h5py"], "date": time.strftime("%Y-%m-%d %H:%M:%S"),
                        "sensor": [W, H], "views": VIEWS, "motion_s": MOTION_NS / 1e9,
                        "goal_mev_s": GOAL_MEV_S, "goal_gb_at_1e8": GOAL_GB,
-                       "load_average_at_start": list(os.getloadavg())}, "runs": []}
+                       "load_average_at_start": load_average()}, "runs": []}
     try:
         for i, per_view in enumerate(sizes):
             sess = scratch / f"s{i}"
@@ -318,10 +303,9 @@ def main(argv=None) -> int:
         "meets_throughput_goal": big["convert_mev_s"] >= GOAL_MEV_S,
         "meets_memory_goal": (result["baseline_rss_mb"] + per_ev * max(1e8, big["events"])) <= GOAL_GB * 1024,
     }
-    result["meta"]["load_average_at_end"] = list(os.getloadavg())
+    result["meta"]["load_average_at_end"] = load_average()
     result["meta"]["self_maxrss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    (args.out / f"{stem}.json").write_text(json.dumps(result, indent=2))
-    plot(result, args.out / f"{stem}.png")
+    write_results(args.out, stem, result, plot)
     print(json.dumps(result["summary"], indent=2))
     return 0
 

@@ -21,17 +21,11 @@ Writes ``generator.json`` and ``generator.png`` into ``--out``.
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
 import sys
-import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import arg_parser, load_average, machine, pyplot, save_figure, timed, write_results
 
 from evdnerf_ros.sim import LOG_EPS, EventGenerator  # noqa: E402
 
@@ -62,10 +56,12 @@ def run_ours(frames, t, **kw):
     """Streaming, as evlib is driven: one call per frame, outputs kept in a list (the
     concatenation into one array happens after timing, as for evlib)."""
     gen = EventGenerator(frames.shape[2], frames.shape[1], **kw)
-    t0 = time.perf_counter()
-    gen.reset(frames[0], int(t[0]))
-    parts = [gen.step(frames[i], int(t[i])) for i in range(1, len(t))]
-    dt = time.perf_counter() - t0
+
+    def stream():
+        gen.reset(frames[0], int(t[0]))
+        return [gen.step(frames[i], int(t[i])) for i in range(1, len(t))]
+
+    dt, parts = timed(stream)
     return dt, np.concatenate(parts), gen
 
 
@@ -80,9 +76,7 @@ def run_evlib(evlib_frames, t, threads):
         sim = ESIMSimulator(ESIMConfig(positive_threshold=0.2, negative_threshold=0.2,
                                        refractory_period_ms=0.0, log_floor=1e-12, device="cpu",
                                        dtype="float64"))
-        t0 = time.perf_counter()
-        parts = [sim.process_frame(f, ti * 1e-9) for f, ti in zip(evlib_frames, t)]
-        dt = time.perf_counter() - t0
+        dt, parts = timed(lambda: [sim.process_frame(f, ti * 1e-9) for f, ti in zip(evlib_frames, t)])
     finally:
         torch.set_num_threads(old)
     counts = np.zeros(evlib_frames[0].shape, np.int64)
@@ -165,12 +159,7 @@ def skipping(n_frames, reps):
 
 
 def plot(result, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    fig, axes = pyplot().subplots(1, 2, figsize=(11, 4))
     tp = result["throughput"]
     names, vals = ["ours (numpy, 1 thread)"], [tp["ours"]["mev_per_s"]]
     for key in ("evlib", "evlib_1thread"):
@@ -197,39 +186,22 @@ def plot(result, path):
     ax.set_yscale("log")
     ax.legend(fontsize=8)
     ax.set_title("changed-pixel skipping", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="fewer frames and repetitions")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    ap = arg_parser(__doc__, quick="fewer frames and repetitions")
     args = ap.parse_args(argv)
     n_frames, reps = (20, 3) if args.quick else (100, 5)
     result = {
         "benchmark": "event generator",
         "quick": args.quick,
-        "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                    "numpy": np.__version__, "cpus": os.cpu_count(),
-                    "load_average_before": os.getloadavg()},
+        "machine": {**machine("evlib", "torch"), "load_average_before": load_average()},
         "throughput": throughput(n_frames, reps),
         "skipping": skipping(n_frames, reps),
     }
-    result["machine"]["load_average_after"] = os.getloadavg()
-    try:
-        from importlib.metadata import version
-
-        import torch
-
-        result["machine"].update(evlib=version("evlib"), torch=torch.__version__)
-    except Exception:  # noqa: BLE001
-        pass
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "generator.json").write_text(json.dumps(result, indent=2))
-    plot(result, out / "generator.png")
+    result["machine"]["load_average_after"] = load_average()
+    write_results(args.out, "generator", result, plot)
     tp = result["throughput"]
     print(f"ours: {tp['ours']['median_s']:.3f} s, {tp['ours']['mev_per_s']:.2f} Mev/s, "
           f"{tp['ours']['frames_per_s']:.0f} frames/s")

@@ -22,17 +22,12 @@ Usage: python bench/bench_leaveout.py [--rounds R] [--steps S]  -> bench/results
 
 from __future__ import annotations
 
-import argparse
 import json
-import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-RESULTS = ROOT / "bench" / "results"
+from _common import arg_parser, machine, pyplot, save_figure, write_results
 
 BASE = {"windows": [32], "window_switch": [], "time_curriculum": 0, "lr_warmup_iters": 0,
         "log_every": 0, "eval_every": 0, "checkpoint_every": 0}
@@ -77,12 +72,11 @@ def main(argv=None):
     from evdnerf_ros.io.trainingset import TrainingSet
     from evdnerf_ros.train.trainer import Trainer
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = arg_parser(__doc__, quick=None)
     ap.add_argument("--work", default="/tmp/bench_train")
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--steps", type=int, default=6, help="steps per variant per round")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--out", default=str(RESULTS))
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     work = Path(args.work)
@@ -115,7 +109,7 @@ def main(argv=None):
     ref = rows["all"]["ms_per_step_median"]
     for r in rows.values():
         r["time_vs_all"] = r["ms_per_step_median"] / ref
-    result = {"machine": {"platform": platform.platform(), "threads": args.threads},
+    result = {"machine": {**machine("torch"), "threads": args.threads},
               "data": "jet-down 128x128, 18 training views, 32 windows, 1024 rays, 48 samples",
               "field_init": str(init) if init.exists() else "untrained",
               "steps_per_variant": n_steps, "variants": rows,
@@ -124,20 +118,14 @@ def main(argv=None):
                           "occupancy_extra": ref / rows["+occupancy"]["ms_per_step_median"],
                           "all_vs_none": rows["none"]["ms_per_step_median"] / ref}}
     ts.close()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "leaveout.json").write_text(json.dumps(result, indent=1))
-    plot(rows, out / "leaveout.png")
+    write_results(args.out, "leaveout", result, plot)
     print(json.dumps(result, indent=1))
 
 
-def plot(rows: dict, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def plot(result: dict, path: Path) -> None:
+    rows = result["variants"]
     names = list(rows)
-    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, ax = pyplot().subplots(1, 2, figsize=(10, 3.6))
     ax[0].bar(names, [rows[n]["ms_per_step_median"] for n in names], color="tab:blue")
     ax[0].set_ylabel("ms per training step (median)")
     ax[1].bar(names, [rows[n]["space_points_per_step"] / 1e3 for n in names], label="space features")
@@ -148,9 +136,7 @@ def plot(rows: dict, path: Path) -> None:
     for a in ax:
         a.tick_params(axis="x", rotation=20)
     fig.suptitle("Leave-out switches of training (Jet-Down 128x128, 18 views)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 if __name__ == "__main__":

@@ -31,10 +31,8 @@ Writes ``publish.json`` and ``publish.png`` into ``--out``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -43,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import ROOT, arg_parser, machine, pyplot, read_results, save_figure, write_results
 
 from evdnerf_ros.nodes.event_publisher import run_node  # noqa: E402
 
@@ -235,7 +233,7 @@ def dds_run(fast: bool, size: int, n: int, domain: int, cpus=None) -> dict:
 
     pre = ["taskset", "-c", cpus[1]] if cpus else []
     reader = subprocess.Popen(pre + [sys.executable, "-c", READER, str(domain), "fast" if fast else "slow", str(n)],
-                              stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[1])
+                              stdout=subprocess.PIPE, text=True, cwd=ROOT)
     assert reader.stdout.readline().strip() == "ready"
     ctx = DdsContext(domain, config=LOOPBACK_XML)
     pub = DdsPublisher(ctx, "/bench/events", "event_camera_msgs/msg/EventPacket", profile("default", 64), fast=fast)
@@ -279,25 +277,17 @@ def bench_dds(quick, cpus):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="smaller sweep (smoke test)")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    ap = arg_parser(__doc__, quick="smaller sweep (smoke test)")
     ap.add_argument("--dds-cpus", default="0,1", help="cores of the DDS writer,reader ('' = no pinning)")
     ap.add_argument("--note", default="", help="free text stored in the JSON (e.g. machine load)")
     ap.add_argument("--only", choices=["resolution", "tolerance", "leave_out", "dds"], action="append")
     args = ap.parse_args(argv)
-    out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
     cpus = args.dds_cpus.split(",") if args.dds_cpus else None
     parts = args.only or ["resolution", "tolerance", "leave_out", "dds"]
     name = "publish_quick" if args.quick else "publish"
-    result = {}
-    if args.only and (out_dir / f"{name}.json").exists():      # update only the parts run now
-        result = json.loads((out_dir / f"{name}.json").read_text())
+    result = read_results(args.out, name, missing_ok=True) if args.only else {}   # update only the parts run now
     result.update({"benchmark": "publish", "quick": args.quick, "note": args.note,
-              "machine": {"cpus": os.cpu_count(), "affinity": sorted(os.sched_getaffinity(0)),
-                          "python": platform.python_version(), "numpy": np.__version__,
-                          "platform": platform.platform()}})
+                   "machine": machine("cyclonedds", "torch")})
     with tempfile.TemporaryDirectory() as tmp:
         if "resolution" in parts:
             result["rtf_vs_resolution"] = bench_resolution(tmp, args.quick)
@@ -307,18 +297,11 @@ def main(argv=None):
             result["leave_out"] = bench_leave_out(tmp, args.quick)
     if "dds" in parts:
         result["dds_throughput"] = bench_dds(args.quick, cpus)
-    (out_dir / f"{name}.json").write_text(json.dumps(result, indent=2))
-    plot(result, out_dir / f"{name}.png")
-    print(f"wrote {out_dir / (name + '.json')} and .png")
+    write_results(args.out, name, result, plot)
 
 
 def plot(result, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(1, 4, figsize=(21, 4.6))
+    fig, ax = pyplot().subplots(1, 4, figsize=(21, 4.6))
     rows = result.get("rtf_vs_resolution", [])
     if rows:
         ax[0].bar([f"{r['width']}x{r['height']}" for r in rows], [r["rtf"] for r in rows], color="tab:blue")
@@ -366,9 +349,7 @@ def plot(result, path):
         ax[3].set_yscale("log")
         ax[3].set_ylabel("speed-up (wall time off / on)")
         ax[3].set_title("leave-out switches (adaptive vs fixed at its finest step)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 if __name__ == "__main__":

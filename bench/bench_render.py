@@ -22,32 +22,15 @@ Writes ``render.json`` and ``render.png`` into ``--out``.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import platform
-import sys
-import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import arg_parser, best_of, machine, pyplot, save_figure, write_results
 
 from evdnerf_ros.geometry.camera import PinholeCamera  # noqa: E402
 from evdnerf_ros.sim.render import SceneRenderer  # noqa: E402
 from evdnerf_ros.sim.scene import list_presets, load_scene  # noqa: E402
-
-
-def _best_of(f, reps, before=None):
-    best = np.inf
-    for _ in range(reps):
-        if before is not None:
-            before()
-        t0 = time.perf_counter()
-        f()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def frame_times(sc, cam, configs, views, times, reps=3):
@@ -69,7 +52,7 @@ def frame_times(sc, cam, configs, views, times, reps=3):
                 tests[k] += r.stats.tests - n0
                 clear = (lambda r=r: setattr(r, "_bg_cache", None)) if i == 0 else None
                 (first if i == 0 else warm)[k].append(
-                    _best_of(lambda r=r: r(poses[v], t), reps, clear))
+                    best_of(lambda r=r: r(poses[v], t), reps, clear))
     n = len(views) * len(times)
     return {k: (float(np.mean(warm[k])), float(np.mean(first[k])), tests[k] / n) for k in rs}
 
@@ -83,11 +66,11 @@ def kernel_backend(n=65536, reps=20):
     o = np.array([0.0, 0.0, -4.0])
     e = Ellipsoid([0.5, 0.3, 0.2])
 
-    def timed(f):
+    def warm_best_ms(f):
         f()
-        return _best_of(f, reps) * 1e3
+        return best_of(f, reps) * 1e3
 
-    out = {"rays": n, "numpy_float64_ms": timed(lambda: e.intersect(o, d))}
+    out = {"rays": n, "numpy_float64_ms": warm_best_ms(lambda: e.intersect(o, d))}
     try:
         import torch
     except ImportError:
@@ -109,21 +92,17 @@ def kernel_backend(n=65536, reps=20):
             disc = b * b - a * c
             t = (-b - torch.sqrt(disc.clamp(min=0))) / a
             return torch.where(disc >= 0, t, torch.full_like(t, float("inf")))
-        out[name] = timed(f)
+        out[name] = warm_best_ms(f)
     return out
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="fewer views/frames, 64 px")
+    ap = arg_parser(__doc__, quick="fewer views/frames, 64 px")
     ap.add_argument("--size", type=int, default=None, help="image size (default 128; 64 quick)")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
     args = ap.parse_args(argv)
     size = args.size or (64 if args.quick else 128)
     views = [0, 5] if args.quick else [0, 4, 9, 13]
     nt = 3 if args.quick else 5
-    out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
 
     presets = {}
     for name in list_presets():
@@ -155,7 +134,7 @@ def main(argv=None):
         for s in (1, 2, 3, 4):
             r = SceneRenderer(sc, cam, s)
             img = r(T, t).astype(np.float64)
-            sec = _best_of(lambda: r(T, t), 3 if args.quick else 7)
+            sec = best_of(lambda: r(T, t), 3 if args.quick else 7)
             pts.append({"supersample": s, "s_per_frame": sec,
                         "mae": float(np.abs(img - ref).mean()),
                         "max_abs": float(np.abs(img - ref).max()),
@@ -170,17 +149,16 @@ def main(argv=None):
 
     result = {"benchmark": "render", "size": [size, size], "quick": bool(args.quick),
               "views": views, "frames_per_view": nt,
-              "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
-                          "numpy": np.__version__, "platform": platform.platform()},
+              "machine": machine("torch"),
               "presets": presets, "supersample_error_vs_time": curves,
               "kernel_backend": backend}
-    (out_dir / "render.json").write_text(json.dumps(result, indent=2))
+    write_results(args.out, "render", result, plot)
 
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(1, 3, figsize=(16, 4.6))
+def plot(result, path):
+    presets, curves = result["presets"], result["supersample_error_vs_time"]
+    size = result["size"][0]
+    fig, ax = pyplot().subplots(1, 3, figsize=(16, 4.6))
     names = list(presets)
     x = np.arange(len(names))
     ax[0].bar(x - 0.27, [presets[n]["s1"]["fps"] for n in names], 0.27, label="s=1")
@@ -189,7 +167,7 @@ def main(argv=None):
               label="s=2, no bbox prefilter")
     ax[0].set_xticks(x, names, rotation=20)
     ax[0].set_ylabel("frames / s")
-    ax[0].set_title(f"renderer throughput, {size}x{size}, {os.cpu_count()} CPUs")
+    ax[0].set_title(f"renderer throughput, {size}x{size}, {result['machine']['cpus']} CPUs")
     ax[0].set_ylim(0, 1.35 * max(presets[n]["s1"]["fps"] for n in names))
     ax[0].legend(fontsize=8, ncol=3, loc="upper center")
     for name, pts in curves.items():
@@ -198,18 +176,14 @@ def main(argv=None):
         ax[2].loglog(sec, [p["rms_log"] for p in pts], "o-", label=name)
         for p in pts:
             ax[1].annotate(f"s={p['supersample']}", (p["s_per_frame"], p["mae"]), fontsize=7)
-    ax[1].set_xlabel("seconds / frame")
-    ax[1].set_ylabel("mean |I - I_ref(s=8)|")
-    ax[1].set_title("antialiasing: error against run time")
-    ax[2].set_xlabel("seconds / frame")
-    ax[2].set_ylabel("RMS log-intensity error")
-    ax[2].set_title("same, in log intensity (what events see)")
+    ax[1].set(xlabel="seconds / frame", ylabel="mean |I - I_ref(s=8)|",
+              title="antialiasing: error against run time")
+    ax[2].set(xlabel="seconds / frame", ylabel="RMS log-intensity error",
+              title="same, in log intensity (what events see)")
     for a in ax[1:]:
         a.legend()
         a.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(out_dir / "render.png", dpi=110)
-    print(f"wrote {out_dir / 'render.json'} and {out_dir / 'render.png'}")
+    save_figure(fig, path, dpi=110)
 
 
 if __name__ == "__main__":

@@ -43,17 +43,12 @@ renders are cheap, so this is the sampler + generator cost).
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
-import platform
 import sys
-import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import arg_parser, machine, pyplot, save_figure, timed, write_results
 
 from evdnerf_ros.sim import LOG_EPS, EventGenerator, simulate_renderer  # noqa: E402
 
@@ -180,11 +175,9 @@ def run_max_step(scene):
 
     def go(max_step, guard):
         gen = EventGenerator(scene.w, scene.h)
-        t0 = time.perf_counter()
-        ev, stats = simulate_renderer(scene, 0, SPAN, gen, tolerance_c=0.1, min_step_ns=min_step,
-                                      max_step_ns=max_step,
-                                      travel_px=scene.travel if guard else None)
-        wall = time.perf_counter() - t0
+        wall, (ev, stats) = timed(lambda: simulate_renderer(
+            scene, 0, SPAN, gen, tolerance_c=0.1, min_step_ns=min_step, max_step_ns=max_step,
+            travel_px=scene.travel if guard else None))
         counts = np.bincount(ev["y"].astype(np.int64) * scene.w + ev["x"],
                              minlength=scene.w * scene.h)
         return counts, stats, wall
@@ -242,9 +235,7 @@ def run(scene, exact, method, knob):
         kw = dict(tolerance_c=knob, min_step_ns=1_000, max_step_ns=SPAN // 10)
     else:
         kw = dict(tolerance_c=1e9, max_dlog_c=knob, min_step_ns=1_000, max_step_ns=SPAN // 10)
-    t0 = time.perf_counter()
-    ev, stats = simulate_renderer(scene, 0, SPAN, gen, **kw)
-    wall = time.perf_counter() - t0
+    wall, (ev, stats) = timed(lambda: simulate_renderer(scene, 0, SPAN, gen, **kw))
     res = {"method": method, "knob": knob, "renders": stats.renders, "wall_s": wall,
            "events": int(ev.size), "smallest_step_ns": stats.smallest_step_ns,
            "at_min_step": stats.at_min_step}
@@ -260,14 +251,9 @@ KNOBS = {
 
 
 def plot(result, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     scenes = list(result["scenes"])
-    fig, axes = plt.subplots(len(scenes) + 1, 4, figsize=(19, 4.2 * (len(scenes) + 1)),
-                             squeeze=False)
+    fig, axes = pyplot().subplots(len(scenes) + 1, 4, figsize=(19, 4.2 * (len(scenes) + 1)),
+                                  squeeze=False)
     swing = result.get("max_step")
     for c in range(4):
         axes[-1, c].set_visible(c == 0)
@@ -309,21 +295,16 @@ def plot(result, path):
             axes[r, c].set_title(sname, fontsize=9)
             axes[r, c].grid(True, which="both", alpha=0.3)
             axes[r, c].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="fewer knob values, smaller images")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    ap = arg_parser(__doc__, quick="fewer knob values, smaller images")
     args = ap.parse_args(argv)
     knobs = {k: (v[::3] if args.quick else v) for k, v in KNOBS.items()}
     size = dict(w=32, h=4) if args.quick else dict(w=64, h=8)
     result = {"benchmark": "sampling error against run time", "quick": args.quick,
-              "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                          "numpy": np.__version__, "cpus": os.cpu_count()},
+              "machine": machine(),
               "threshold_c": C, "span_ns": SPAN, "scenes": {}}
     for scene in (Edge(**size), Bar(**size)):
         exact = scene.exact()
@@ -350,10 +331,7 @@ def main(argv=None):
         print(scene.name, json.dumps(summary))
     result["max_step"] = run_max_step(Swing())
     print("swing", json.dumps(result["max_step"]["summary"]))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "sampling_error.json").write_text(json.dumps(result, indent=2))
-    plot(result, out / "sampling_error.png")
+    write_results(args.out, "sampling_error", result, plot)
     return 0
 
 

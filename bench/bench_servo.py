@@ -17,9 +17,6 @@ Usage: python bench/bench_servo.py [--quick]   -> bench/results/servo.{json,png}
 
 from __future__ import annotations
 
-import argparse
-import json
-import platform
 import sys
 import tempfile
 import time
@@ -27,12 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import arg_parser, machine, pyplot, save_figure, write_results
 
 from rig import virtual_arduino as va_mod  # noqa: E402
 from rig.servo import ServoClient  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
 FRAME_NS = 20_000_000
 
 
@@ -98,13 +94,8 @@ def measure(runs: int, pings: int, work: Path) -> dict:
 
 
 def plot(results: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     s = results["series"]
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (ax1, ax2) = pyplot().subplots(1, 2, figsize=(11, 4.2))
     ax1.hist(s["rtt_ms"], bins=40, color="tab:blue")
     r = results["ping_rtt_ms"]
     ax1.set_xlabel("PING round trip [ms]")
@@ -128,33 +119,26 @@ def plot(results: dict, path: Path) -> None:
     ax2.set_title("motion start over RUNs: host-timed vs trigger-timed", fontsize=9)
     fig.suptitle("rig_servo firmware in the virtual Arduino (simavr, paced to real time, no USB)",
                  fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="5 RUNs, 50 pings (a smoke run)")
-    ap.add_argument("-o", "--out", type=Path, default=RESULTS)
+    ap = arg_parser(__doc__, quick="5 RUNs, 50 pings (a smoke run)")
     args = ap.parse_args(argv)
     missing = [p for p in va_mod.missing_tools() if p != "avrdude"]
     if missing:
         sys.exit("bench_servo needs the Debian packages " + " ".join(missing))
-    args.out.mkdir(parents=True, exist_ok=True)
     runs, pings = (5, 50) if args.quick else (50, 200)
     with tempfile.TemporaryDirectory() as tmp:
         res = measure(runs, pings, Path(tmp))
-    results = {"machine": {"platform": platform.platform(), "python": platform.python_version()},
+    results = {"machine": machine(),
                "quick": bool(args.quick), "runs": runs, "pings": pings, **res}
     name = "servo_quick" if args.quick else "servo"
-    (args.out / f"{name}.json").write_text(json.dumps(results, indent=2) + "\n")
-    plot(results, args.out / f"{name}.png")
+    write_results(args.out, name, results, plot)
     for key in ("ping_rtt_ms", "run_command_to_start_ms", "trigger_minus_start_residual_us",
                 "done_minus_start_ms"):
         print(f"{key}: {results[key]}")
     print(f"pulse width max diff between runs: {results['pulse_width_max_diff_between_runs_us']} us")
-    print(f"wrote {args.out / (name + '.json')} and {name}.png")
 
 
 if __name__ == "__main__":

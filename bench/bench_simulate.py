@@ -14,18 +14,14 @@ Usage: python bench/bench_simulate.py [--quick]   -> bench/results/simulate.{jso
 
 from __future__ import annotations
 
-import argparse
 import json
-import platform
 import resource
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import arg_parser, machine, pyplot, read_results, save_figure, timed, write_results
 
 from evdnerf_ros.events import log_change_stack, window_edges  # noqa: E402
 from evdnerf_ros.sim.generator import EventGenerator  # noqa: E402
@@ -34,15 +30,12 @@ from evdnerf_ros.sim.sampling import simulate_renderer  # noqa: E402
 from evdnerf_ros.sim.scene import load_scene  # noqa: E402
 from evdnerf_ros.sim.simulate import SimulationOptions, simulate_session  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def full_session(views: int, resolution: int) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        t0 = time.perf_counter()
-        session = simulate_session("jet-down", Path(tmp) / "s", SimulationOptions(
-            views=views, val_views=views, resolution=(resolution, resolution)), log=lambda *_: None)
-        wall = time.perf_counter() - t0
+        wall, session = timed(lambda: simulate_session("jet-down", Path(tmp) / "s", SimulationOptions(
+            views=views, val_views=views, resolution=(resolution, resolution)), log=lambda *_: None))
     peak_children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     peak_self = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return {"scene": "jet-down", "views": 2 * views, "resolution": resolution,
@@ -62,22 +55,23 @@ def static_span_saving(resolution: int) -> dict:
     for name, skip in (("one render per static span", True), ("sampler over static spans", False)):
         renderer = SceneRenderer(scene, cam, 2)
         gen = EventGenerator(cam.width, cam.height)
-        t0 = time.perf_counter()
-        renders = 0
-        if skip:
-            m0, m1 = scene.motion_span_ns()
-            gen.reset(renderer(T, scene.start_ns), scene.start_ns)
-            gen.step_log(gen.last_log(), m0)
-            ev, st = simulate_renderer(lambda t: renderer(T, t), m0, m1, gen,
-                                       min_step_ns=1_000_000, max_step_ns=10_000_000)
-            gen.step_log(gen.last_log(), scene.end_ns)
-            renders = st.renders + 1
-        else:
+
+        def simulate(skip=skip, renderer=renderer, gen=gen):
+            """(events, renders)"""
+            if skip:
+                m0, m1 = scene.motion_span_ns()
+                gen.reset(renderer(T, scene.start_ns), scene.start_ns)
+                gen.step_log(gen.last_log(), m0)
+                ev, st = simulate_renderer(lambda t: renderer(T, t), m0, m1, gen,
+                                           min_step_ns=1_000_000, max_step_ns=10_000_000)
+                gen.step_log(gen.last_log(), scene.end_ns)
+                return ev, st.renders + 1
             ev, st = simulate_renderer(lambda t: renderer(T, t), scene.start_ns, scene.end_ns,
                                        gen, min_step_ns=1_000_000, max_step_ns=10_000_000)
-            renders = st.renders
-        out[name] = {"renders": renders, "seconds": round(time.perf_counter() - t0, 3),
-                     "events": int(ev.size)}
+            return ev, st.renders
+
+        sec, (ev, renders) = timed(simulate)
+        out[name] = {"renders": renders, "seconds": round(sec, 3), "events": int(ev.size)}
     a, b = out["one render per static span"], out["sampler over static spans"]
     out["renders_saved"] = b["renders"] - a["renders"]
     out["time_ratio"] = round(b["seconds"] / a["seconds"], 3)
@@ -96,9 +90,8 @@ def error_vs_runtime(resolution: int, quick: bool) -> dict:
     def run(**kw):
         renderer = SceneRenderer(scene, cam, 2)
         gen = EventGenerator(cam.width, cam.height)
-        t0 = time.perf_counter()
-        ev, st = simulate_renderer(lambda t: renderer(T, t), t_start, t_end, gen, **kw)
-        return ev, st.renders, time.perf_counter() - t0
+        sec, (ev, st) = timed(lambda: simulate_renderer(lambda t: renderer(T, t), t_start, t_end, gen, **kw))
+        return ev, st.renders, sec
 
     ref_rate = 5_000 if quick else 20_000
     ref, ref_renders, _ = run(mode="fixed", rate_hz=ref_rate)
@@ -130,12 +123,7 @@ def error_vs_runtime(resolution: int, quick: bool) -> dict:
 
 
 def plot(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    fig, axes = pyplot().subplots(1, 2, figsize=(10, 3.8))
     for name, pts in result["error_vs_runtime"]["curves"].items():
         for ax, key in zip(axes, ("renders", "seconds")):
             ax.loglog([p[key] for p in pts], [max(p["relative_error"], 1e-6) for p in pts],
@@ -153,30 +141,24 @@ def plot(result: dict, path: Path) -> None:
     fig.suptitle(f"simulate: error against run time (jet-down 64x64, 0.2 s) — full session "
                  f"{full['views']} views @ {full['resolution']}^2 in {full['wall_seconds']} s",
                  fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small sizes for a smoke run")
+def main(argv=None) -> None:
+    ap = arg_parser(__doc__, quick="small sizes for a smoke run")
     ap.add_argument("--parts", default="error,static,full",
-                    help="comma-separated parts to run; others are kept from the last results")
-    args = ap.parse_args()
+                    help="comma-separated parts to run; others are kept from the last results in --out")
+    args = ap.parse_args(argv)
     parts = set(args.parts.split(","))
-    path = RESULTS / "simulate.json"
-    result = json.loads(path.read_text()) if path.exists() and parts != {"error", "static", "full"} else {}
-    result["machine"] = {"platform": platform.platform(), "python": platform.python_version()}
+    result = read_results(args.out, "simulate", missing_ok=True) if parts != {"error", "static", "full"} else {}
+    result["machine"] = machine()
     if "error" in parts:
         result["error_vs_runtime"] = error_vs_runtime(32 if args.quick else 64, args.quick)
     if "static" in parts:
         result["static_span_saving"] = static_span_saving(32 if args.quick else 128)
     if "full" in parts:
         result["full_session"] = full_session(2 if args.quick else 18, 32 if args.quick else 128)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "simulate.json").write_text(json.dumps(result, indent=2))
-    plot(result, RESULTS / "simulate.png")
+    write_results(args.out, "simulate", result, plot)
     print(json.dumps(result, indent=2))
 
 

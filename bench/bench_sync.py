@@ -17,27 +17,21 @@ Usage: python bench/bench_sync.py [--quick]   -> bench/results/sync.{json,png}
 
 from __future__ import annotations
 
-import argparse
-import json
-import platform
 import shutil
-import sys
 import tempfile
-import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import arg_parser, machine, pyplot, save_figure, timed, write_results
 
 from evdnerf_ros.session.sync import SyncOptions, sync_session  # noqa: E402
 from evdnerf_ros.sim.perturb import perturb_session  # noqa: E402
 from evdnerf_ros.sim.scene import preset_path  # noqa: E402
 from evdnerf_ros.sim.simulate import SimulationOptions, simulate_session  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
 BINS_NS = [10_000_000, 5_000_000, 2_000_000, 1_000_000, 500_000, 200_000, 100_000, 50_000]
 QUICK_BINS_NS = [10_000_000, 1_000_000, 100_000]
 LEAD_S = 0.15
@@ -68,9 +62,8 @@ def run(session_dir: Path, options: SyncOptions, work: Path):
     if copy.exists():
         shutil.rmtree(copy)
     shutil.copytree(session_dir, copy)
-    t0 = time.perf_counter()
-    res = sync_session(copy, replace(options, plot_path=work / "sync.png"))
-    sec = time.perf_counter() - t0
+    opts = replace(options, plot_path=work / "sync.png", overwrite=True)   # one plot path for every run
+    sec, res = timed(lambda: sync_session(copy, opts))
     return res, sec, copy
 
 
@@ -91,9 +84,7 @@ def rate_curve(work: Path, quick: bool) -> dict:
     sim = SimulationOptions(views=views, val_views=val, resolution=res, frame_rate_hz=0, gt_times=0,
                             supersample=1, jobs=2, min_step_ns=2_000_000)
     scene = jet_with_lead_in(work / "jet-down-lead.yaml")
-    t0 = time.perf_counter()
-    simulate_session(str(scene), work / "jet", sim, log=lambda *_: None)
-    sim_sec = time.perf_counter() - t0
+    sim_sec, _ = timed(lambda: simulate_session(str(scene), work / "jet", sim, log=lambda *_: None))
     noisy = []
     for seed in seeds:
         noisy.append(perturb_session(work / "jet", work / f"jet_noisy_{seed}", noise_hz=2.0, hot=3,
@@ -141,13 +132,8 @@ def sources(work: Path, quick: bool) -> dict:
 
 
 def plot(results: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     curves = results["rate"]["curves"]
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (ax1, ax2) = pyplot().subplots(1, 2, figsize=(11, 4.2))
     for name, marker in (("onset", "o"), ("refined", "s")):
         pts = curves[name]
         b = np.array([p["bin_ns"] for p in pts]) / 1e3
@@ -177,29 +163,22 @@ def plot(results: dict, path: Path) -> None:
     r = results["rate"]
     fig.suptitle(f"evdnerf sync: {r['scene']}, {r['views']} views at {r['resolution'][0]}x{r['resolution'][1]}, "
                  "noise + hot pixels + jitter", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small session, three bins (a smoke run)")
-    ap.add_argument("-o", "--out", type=Path, default=RESULTS)
+    ap = arg_parser(__doc__, quick="small session, three bins (a smoke run)")
     args = ap.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         print("event rate: error against bin size")
         rate = rate_curve(work, args.quick)
         print("better sources")
         src = sources(work, args.quick)
-    results = {"machine": {"platform": platform.platform(), "python": platform.python_version()},
+    results = {"machine": machine(),
                "quick": bool(args.quick), "rate": rate, "sources": src}
     name = "sync_quick" if args.quick else "sync"
-    (args.out / f"{name}.json").write_text(json.dumps(results, indent=2) + "\n")
-    plot(results, args.out / f"{name}.png")
-    print(f"wrote {args.out / (name + '.json')} and .png")
+    write_results(args.out, name, results, plot)
 
 
 if __name__ == "__main__":

@@ -28,17 +28,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-RESULTS = ROOT / "bench" / "results"
+from _common import arg_parser, machine, pyplot, read_results, save_figure, write_results
 
 RUNS = {
     # name: (minutes, config, eval views during training, eval views at the end, window factors)
@@ -96,11 +92,7 @@ def child(args) -> None:
 
 
 def plot(result: dict, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, ax = pyplot().subplots(1, 2, figsize=(12, 4.5))
     for name, r in result["runs"].items():
         # each run relative to its own all-zero floor (the dnerf and no-region runs are
         # evaluated on fewer views, whose floors differ)
@@ -127,18 +119,15 @@ def plot(result: dict, path: Path) -> None:
     ax[1].set_ylabel("validation PSNR - all-zero floor (dB)")
     ax[1].set_title("final, at the trained and finer windows")
     ax[1].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="6+6 views at 64x64, minutes x0.1")
+    ap = arg_parser(__doc__, quick="6+6 views at 64x64, minutes x0.1")
     ap.add_argument("--minutes-scale", type=float, default=None)
     ap.add_argument("--work", default="/tmp/bench_train")
     ap.add_argument("--runs", default=",".join(RUNS))
     ap.add_argument("--threads", type=int, default=2, help="torch threads of every run")
-    ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--replot", action="store_true", help="redraw the PNG from the JSON")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--run", help=argparse.SUPPRESS)
@@ -148,15 +137,13 @@ def main(argv=None):
         args.minutes_scale = 0.1 if args.quick else 1.0
     if args.child:
         return child(args)
+    stem = "train_quick" if args.quick else "train"
     if args.replot:
-        name = "train_quick" if args.quick else "train"
-        return plot(json.loads((Path(args.out) / f"{name}.json").read_text()),
-                    Path(args.out) / f"{name}.png")
+        return plot(read_results(args.out, stem), args.out / f"{stem}.png")
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     train_set = build_set(work, args.quick)
-    result = {"machine": {"platform": platform.platform(), "python": platform.python_version(),
-                          "cpus": os.cpu_count()},
+    result = {"machine": machine("torch"),
               "threads": args.threads,
               "data": {"scene": "jet-down", "views": "6+6 at 64x64" if args.quick else "18+18 at 128x128"},
               "runs": {}}
@@ -184,11 +171,7 @@ def main(argv=None):
               f"{r['final']['val_windows_x1']['zero_floor']['psnr']:.2f}); "
               f"{time.perf_counter() - t:.0f} s with evaluation", flush=True)
     result["summary"] = summarise(result["runs"])
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    name = "train_quick" if args.quick else "train"
-    (out / f"{name}.json").write_text(json.dumps(result, indent=1))
-    plot(result, out / f"{name}.png")
+    write_results(args.out, stem, result, plot)
     print(json.dumps(result["summary"], indent=1))
 
 
