@@ -134,7 +134,7 @@ def test_exception_mid_write_leaves_nothing(tmp_path, rng):
 
 
 def test_small_blocks_and_batches(tmp_path, rng, monkeypatch):
-    import evdnerf_ros.io.rosbag2 as rb2
+    import evdnerf_ros.io.bag_reader as rb2
 
     monkeypatch.setattr(em, "BLOCK_EVENTS", 29)
     monkeypatch.setattr(rb2, "_BATCH_EVENTS", 77)

@@ -195,8 +195,12 @@ def test_streaming_state_carries_across_calls(tmp_path, rng):
             w.write_events(TOPIC, chunk, width=W, height=H, encoding="evt3", packet_ns=50_000_000)
     pk = list(iter_event_packets(path, TOPIC))
     assert [p.seq for p in pk] == list(range(len(pk)))
-    assert {p.time_base for p in pk} == {int(ev["t"][0])}
-    assert np.array_equal(read_events(path, TOPIC).events, ev)
+    assert {p.time_base for p in pk} == {0}  # metavision_driver's convention: sensor time in the payload
+    assert all(p.stamp_ns == int(p.events["t"][0]) for p in pk)
+    got = read_events(path, TOPIC)
+    assert np.array_equal(got.events, ev)
+    # the sensor clock starts at the first time rounded down to 4096 us (the date is in the stamps)
+    assert got.time_offset_ns == int(ev["t"][0]) // 4_096_000 * 4_096_000
 
 
 # --------------------------------------------------------------------------- independent reader
@@ -222,7 +226,7 @@ def test_mcap_read_back_by_independent_reader_event_packet(tmp_path, rng):
     nmsg = _write(path, ev, tr, "evt3", "mcap", packet_ns=100_000_000)
     msgs = [m for m in _mcap_messages(path) if m[0] == TOPIC]
     assert len(msgs) == nmsg
-    dec = make_decoder("evt3", time_base_ns=int(ev["t"][0]))
+    dec = None
     got_ev, got_tr = [], []
     for k, (topic, schema, log_time, m) in enumerate(msgs):
         assert schema == EVENT_PACKET
@@ -230,7 +234,12 @@ def test_mcap_read_back_by_independent_reader_event_packet(tmp_path, rng):
         assert stamp == log_time
         assert (m.height, m.width, m.seq, m.encoding, m.is_bigendian) == (H, W, k, "evt3", False)
         assert m.header.frame_id == "event_camera"
-        assert m.time_base == int(ev["t"][0])
+        assert m.time_base == 0  # as metavision_driver writes evt3: sensor time in the payload
+        if dec is None:  # the host time of sensor time 0, from the first stamp and the first sensor time
+            probe = make_decoder("evt3").feed(bytes(m.events))
+            first = min(int(a["t"][0]) for a in (probe.events, probe.triggers) if a.size)
+            assert 0 <= first < 4_096_000  # the sensor clock starts near 0, whatever the date
+            dec = make_decoder("evt3", time_base_ns=stamp - first)
         d = dec.feed(bytes(m.events))
         got_ev.append(d.events)
         got_tr.append(d.triggers)
@@ -433,7 +442,7 @@ def test_write_raw_passes_serialised_messages_through(tmp_path):
 @pytest.mark.parametrize("encoding", ENCODINGS)
 def test_small_blocks_and_batches_give_the_same_result(tmp_path, rng, monkeypatch, encoding):
     """Writing in record blocks and reading in batches (normally 1 Mi events / 2 MiB) is invisible."""
-    import evdnerf_ros.io.rosbag2 as rb2
+    import evdnerf_ros.io.bag_reader as rb2
 
     monkeypatch.setattr(em, "BLOCK_EVENTS", 37)
     monkeypatch.setattr(rb2, "_BATCH_EVENTS", 101)

@@ -12,6 +12,7 @@ from evdnerf_ros.cli import main
 from evdnerf_ros.events import make_triggers
 from evdnerf_ros.io.event_files import read_event_file
 from evdnerf_ros.io.npz import write_npz
+from evdnerf_ros.io.rosbag2 import BagWriter
 
 
 def _us_grid_events(rng, n=20_000, width=64, height=48):
@@ -55,14 +56,23 @@ def test_convert_events_round_trip(tmp_path, npz_input, out_name, encoding, keep
     assert np.array_equal(read_event_file(tmp_path / "again.npz").events, ev)
 
 
-def test_convert_events_custom_topic(tmp_path, rng):
+def test_convert_events_custom_topic(tmp_path, rng, capsys):
     ev = _us_grid_events(rng, 1000)
     write_npz(tmp_path / "in.npz", ev, 64, 48)
     assert main(["convert-events", str(tmp_path / "in.npz"), str(tmp_path / "bag"),
                  "--out-topic", "/cam0/events"]) == 0
-    assert main(["convert-events", str(tmp_path / "bag"), str(tmp_path / "x.npz")]) == 2
-    assert main(["convert-events", str(tmp_path / "bag"), str(tmp_path / "x.npz"),
+    # the only event topic is taken without --topic ...
+    assert main(["convert-events", str(tmp_path / "bag"), str(tmp_path / "x.npz")]) == 0
+    assert main(["convert-events", str(tmp_path / "bag"), str(tmp_path / "y.npz"),
                  "--topic", "/cam0/events"]) == 0
+    assert np.array_equal(read_event_file(tmp_path / "x.npz").events, ev)
+    # ... and among several, --topic is required and the error lists them
+    with BagWriter(tmp_path / "two") as w:
+        for topic in ("/a/events", "/b/events"):
+            w.write_events(topic, ev, width=64, height=48)
+    assert main(["convert-events", str(tmp_path / "two"), str(tmp_path / "z.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "/a/events" in err and "/b/events" in err and "--topic" in err
 
 
 def test_convert_errors_are_one_line_exit_2(tmp_path, npz_input, capsys):

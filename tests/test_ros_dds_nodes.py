@@ -17,7 +17,7 @@ from evdnerf_ros.events.codecs import make_decoder, quantize_to_us
 from evdnerf_ros.io import event_messages as em
 from evdnerf_ros.io.rosbag2 import open_bag, read_events
 from evdnerf_ros.io.typestore import ros2_typestore
-from evdnerf_ros.nodes.echo import run_echo
+from evdnerf_ros.nodes.echo import format_report, run_echo
 from test_ros_publisher import offline_events
 
 EXE = Path(sys.executable).parent / "event_publisher"
@@ -194,3 +194,60 @@ def test_echo_shows_other_message_types(dds_env):
     assert rep.messages == 2 and rep.events == 0 and rep.msgtype == "sensor_msgs/msg/CameraInfo"
     assert any(line.startswith("first message: ") and "CameraInfo(" in line and "width=16" in line for line in lines)
     assert rep.size_min == rep.size_max > 300     # 9 + 9 + 12 + 5 doubles and the header
+
+
+def test_echo_reports_and_saves_trigger_events(dds_env, tmp_path):
+    """EXT_TRIGGER edges inside EventPackets: counted, shown and saved with the events."""
+    import threading
+
+    from evdnerf_ros.events import make_events, make_triggers
+    from evdnerf_ros.io.packetizer import Packetizer
+    from evdnerf_ros.ros.qos import LOOPBACK_XML, profile
+    from evdnerf_ros.ros.transport import DdsContext, DdsPublisher
+
+    ctx = DdsContext(int(dds_env["ROS_DOMAIN_ID"]), config=LOOPBACK_XML)
+    pub = DdsPublisher(ctx, EVENTS, "event_camera_msgs/msg/EventPacket", profile("default"))
+    t = np.arange(200, dtype=np.int64) * 1_000_000 + 3_000_000_000
+    ev = make_events(t, np.arange(200) % 16, np.arange(200) // 16 % 16, np.where(np.arange(200) % 2, 1, -1))
+    trig = make_triggers(np.array([t[10], t[11] + 500_000, t[150]]), np.zeros(3), np.array([1, 0, 1]))
+    packets = []
+    Packetizer(lambda topic, msgtype, data, stamp: packets.append(data)).write_events(
+        EVENTS, ev, width=16, height=16, triggers=trig, packet_ns=20_000_000)
+    result, out = {}, tmp_path / "echo.npz"
+    th = threading.Thread(target=lambda: result.update(rep=run_echo(
+        EVENTS, count=len(packets), duration=30, npz=out, print_fn=lambda *_: None)))
+    th.start()
+    deadline = time.monotonic() + 10
+    while not pub.writer.get_publication_matched_status().current_count and time.monotonic() < deadline:
+        time.sleep(0.05)
+    for data in packets:
+        pub.publish_raw(data)
+    th.join(30)
+    rep = result["rep"]
+    assert rep.events == 200 and rep.triggers == 3 and rep.trigger_rising == 2
+    assert "3 trigger events (2 rising, 1 falling)" in format_report(rep)
+    with np.load(out) as z:
+        np.testing.assert_array_equal(z["trigger_t"], trig["t"])
+        np.testing.assert_array_equal(z["trigger_value"], [1, 0, 1])
+        np.testing.assert_array_equal(z["t"], t)
+    ctx.close()
+
+
+def test_echo_qos_hint_names_its_own_flag(dds_env, capsys):
+    """A reliable echo cannot hear a best-effort publisher: the warning says which flag fixes it."""
+    import io
+    import threading
+
+    lines = []
+    result = {}
+    th = threading.Thread(target=lambda: result.update(rep=run_echo(EVENTS, idle=2.5, print_fn=lines.append)))
+    log = io.StringIO()
+    th.start()
+    time.sleep(1.0)
+    node = _in_process_publisher(log, qos="sensor_data", duration=0.02, wait_for_subscribers=1, wait_timeout=1.0)
+    with node:
+        node.run()
+    th.join(30)
+    assert result["rep"].messages == 0
+    err = capsys.readouterr().err
+    assert "publisher has incompatible QoS (RELIABILITY)" in err and "evdnerf echo TOPIC --qos sensor_data" in err

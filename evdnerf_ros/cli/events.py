@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -14,6 +15,13 @@ from .common import GEOMETRY_HELP, TOPIC_HELP, geometry, number
 def _cmd_convert_events(args) -> int:
     from ..io.event_files import container_kind, read_event_file, write_event_file
 
+    bags = ("rosbag1", "rosbag2")
+    kinds = container_kind(args.input), container_kind(args.output)
+    if kinds[0] in bags and kinds[1] in bags and args.out_topic is None:
+        return _reencode(args, same_family=kinds[0] == kinds[1])
+    if args.repacketize or args.events_only:
+        raise EvdnerfError("--repacketize and --events-only apply to bag -> bag conversions only (and not "
+                           "with --out-topic)")
     data = read_event_file(args.input, topic=args.topic, geometry=args.geometry)
     out_topic = args.out_topic
     if out_topic is None and container_kind(args.output) in ("rosbag1", "rosbag2"):
@@ -22,6 +30,19 @@ def _cmd_convert_events(args) -> int:
                                 storage=args.storage)
     print(f"{args.output}: {len(data.events)} events, {len(data.triggers)} triggers, "
           f"{data.width}x{data.height}" + (f", encoding {encoding}" if encoding else ""))
+    return 0
+
+
+def _reencode(args, *, same_family: bool) -> int:
+    """Bag -> bag: the event topic re-encoded, message by message with its stamps, seq and frame_id,
+    and every other topic copied byte for byte (only between bags of one ROS version)."""
+    from ..io.reencode import reencode_bag
+
+    r = reencode_bag(args.input, args.output, encoding=args.encoding, storage=args.storage, topic=args.topic,
+                     repacketize=args.repacketize, packet_ns=args.packet,
+                     other_topics=same_family and not args.events_only)
+    print(f"{args.output}: {r['events']} events in {r['messages']} messages on {r['topic']}, encoding "
+          f"{r['encoding']}" + "".join(f"\n  {t}: {n} messages copied" for t, n in r["copied"].items()))
     return 0
 
 
@@ -94,6 +115,18 @@ def _cmd_render_events(args) -> int:
     return 0
 
 
+def _duration(text: str) -> int:
+    from ..units import parse_duration_ns
+
+    try:
+        ns = parse_duration_ns(text, name="--packet")
+    except EvdnerfError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    if not 0 < ns <= 3_600 * 10**9:
+        raise argparse.ArgumentTypeError(f"must be in (0, 3600s], got {text!r}")
+    return ns
+
+
 def register(sub) -> None:
     p = sub.add_parser("convert-events", help="convert events between RAW, npz, h5 and bags",
                        description="Convert an event file. The container follows the path: "
@@ -102,8 +135,10 @@ def register(sub) -> None:
                                    "a directory / .mcap / .db3 (rosbag2).")
     p.add_argument("input", help="input event file or bag")
     p.add_argument("output", help="output path (must not exist)")
-    p.add_argument("--encoding", choices=["evt3", "evt2", "mono", "array"],
-                   help="output encoding: evt3/evt2 for .raw; evt3 (EventPacket), mono "
+    from ..io.packetizer import DEFAULT_PACKET_NS, WRITE_ENCODINGS
+
+    p.add_argument("--encoding", choices=WRITE_ENCODINGS,
+                   help="output encoding: evt3/evt2 for .raw; evt3, evt2, mono, libcaer, libcaer_cmp "
                         "(EventPacket) or array (dvs_msgs/EventArray) for bags (default evt3; "
                         "array for ROS 1)")
     p.add_argument("--topic", help=TOPIC_HELP)
@@ -111,6 +146,14 @@ def register(sub) -> None:
     p.add_argument("--out-topic", help="topic in the output bag (default: same as --topic)")
     p.add_argument("--storage", choices=["mcap", "sqlite3"],
                    help="rosbag2 storage plugin for a directory output (default mcap)")
+    p.add_argument("--repacketize", action="store_true",
+                   help="bag -> bag: cut new packets of --packet length instead of keeping each message "
+                        "(its stamp, seq and frame_id)")
+    p.add_argument("--packet", type=_duration, default=DEFAULT_PACKET_NS, metavar="DURATION",
+                   help="bag -> bag with --repacketize: packet length (default 1ms)")
+    p.add_argument("--events-only", action="store_true",
+                   help="bag -> bag: write only the event topic (default: every other topic is copied "
+                        "byte for byte; between ROS 1 and ROS 2 bags only the event topic is written)")
     p.set_defaults(func=_cmd_convert_events)
 
     p = sub.add_parser("video2events", help="turn a high-speed video into events (exact ESIM)",

@@ -3,8 +3,11 @@ event files.
 
 The bag API is re-exported here lazily (importing ``evdnerf_ros.io`` does not load rosbags):
 
-- writing: :class:`BagWriter` (rosbag2), :class:`Rosbag1Writer`, :func:`write_events_rosbag1`
-- reading: :func:`open_bag`, :func:`read_events`, :func:`iter_event_packets`, :func:`bag_info`
+- packets: :class:`Packetizer` (events or raw sensor bytes -> event messages, to any sink)
+- writing: :class:`BagWriter` (rosbag2), :class:`Rosbag1Writer`, :func:`write_events_rosbag1`,
+  :func:`reencode_bag` (bag -> bag, keeping stamps, seq, frame_id and the other topics)
+- reading: :func:`open_bag`, :func:`read_events`, :func:`iter_event_packets`, :func:`bag_info`,
+  :func:`pick_event_topic`
 - messages: :func:`camera_info`, :func:`pose_stamped`, :func:`joint_state`,
   :func:`time_reference`, :func:`stamp_to_ns`, :func:`ns_to_stamp` and their readers
 - typestores: :func:`ros2_typestore`, :func:`ros1_typestore`
@@ -15,8 +18,11 @@ from __future__ import annotations
 import importlib
 
 _EXPORTS = {
-    "rosbag2": ("BagWriter", "BagReader", "BagInfo", "TopicInfo", "EventTopicInfo", "EventStream",
-                "EventPacketData", "open_bag", "read_events", "iter_event_packets", "bag_info"),
+    "packetizer": ("Packetizer",),
+    "rosbag2": ("BagWriter",),
+    "bag_reader": ("BagReader", "BagInfo", "TopicInfo", "EventTopicInfo", "EventStream", "EventPacketData",
+                   "open_bag", "read_events", "iter_event_packets", "bag_info", "pick_event_topic", "event_topics"),
+    "reencode": ("reencode_bag",),
     "rosbag1": ("Rosbag1Writer", "write_events_rosbag1"),
     "messages": ("camera_info", "pose_stamped", "joint_state", "time_reference", "stamp_to_ns", "ns_to_stamp",
                  "K_from_camera_info", "intrinsics_from_camera_info", "pose_from_pose_stamped", "pose_to_matrix",

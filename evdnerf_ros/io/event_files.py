@@ -21,9 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError, InputError
+from ..topics import EVENTS
 from ..events.types import empty_triggers
 
-DEFAULT_TOPIC = "/event_camera/events"
+DEFAULT_TOPIC = EVENTS
 BAG_ENCODINGS = ("evt3", "mono", "array")
 RAW_ENCODINGS = ("evt3", "evt2")
 
@@ -100,9 +101,9 @@ def read_event_file(path, *, topic: str | None = None, need_geometry: bool = Tru
         from .h5events import read_h5
 
         return EventFile(*read_h5(path), kind)
-    from .rosbag2 import read_events
+    from .bag_reader import pick_event_topic, read_events
 
-    stream = read_events(path, topic=topic or DEFAULT_TOPIC)
+    stream = read_events(path, topic=pick_event_topic(path, topic))
     triggers = stream.triggers if stream.triggers is not None else empty_triggers()
     return EventFile(stream.events, triggers, stream.width, stream.height, kind,
                      stream.encoding, stream.topic)

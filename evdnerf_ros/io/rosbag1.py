@@ -6,22 +6,25 @@ stamp secs/nsecs u32, frame_id), height, width, then 13 bytes per event (x u16, 
 secs u32, nsecs u32, polarity u8). ``header.seq`` counts the topic's messages from 0.
 ROS 1 time is unsigned: event times must be >= 0 and below 2**32 s.
 
-Packetising, streaming and the atomic temp-then-rename output are those of
-:class:`evdnerf_ros.io.rosbag2.BagWriter`. Read bags back with
-:func:`evdnerf_ros.io.rosbag2.read_events` (it detects ROS 1 bags).
+:class:`Rosbag1Writer` is an :class:`~evdnerf_ros.io.bag_writer.EventBagWriter` (atomic
+temp-then-rename output, topics, event topics through its packetizer in the ROS 1 wire
+format). Read bags back with :func:`evdnerf_ros.io.bag_reader.read_events` (it detects ROS 1 bags).
 """
 
 from __future__ import annotations
 
-from .rosbag2 import DEFAULT_EVENT_TOPIC, DEFAULT_PACKET_NS, _EventBagWriter
+from .bag_writer import EventBagWriter
+from .packetizer import DEFAULT_EVENT_TOPIC, DEFAULT_PACKET_NS
 from .typestore import ros1_typestore
 
 
-class Rosbag1Writer(_EventBagWriter):
+class Rosbag1Writer(EventBagWriter):
     """ROS 1 bag writer (context manager); messages are built from the ROS 1 typestore
-    (:func:`evdnerf_ros.io.typestore.ros1_typestore`), e.g. ``std_msgs/msg/Header`` with seq."""
+    (:func:`evdnerf_ros.io.typestore.ros1_typestore`), e.g. ``std_msgs/msg/Header`` with seq.
+    ``write_events`` defaults to ``dvs_msgs/EventArray`` (encoding "array")."""
 
-    _ros1 = True
+    ros1 = True
+    default_encoding = "array"
 
     def _make_writer(self, tmp_path):
         from rosbags.rosbag1 import Writer
@@ -30,14 +33,6 @@ class Rosbag1Writer(_EventBagWriter):
 
     def _add_connection(self, topic, msgtype):
         return self._writer.add_connection(topic, msgtype, typestore=ros1_typestore())
-
-    def write_events(self, topic: str, events, *, width: int, height: int, encoding: str = "array",
-                     triggers=None, packet_ns: int = DEFAULT_PACKET_NS, max_packet_events: int | None = None,
-                     frame_id: str = "event_camera") -> int:
-        """As :meth:`evdnerf_ros.io.rosbag2.BagWriter.write_events`, default ``dvs_msgs/EventArray``."""
-        return super().write_events(topic, events, width=width, height=height, encoding=encoding,
-                                    triggers=triggers, packet_ns=packet_ns, max_packet_events=max_packet_events,
-                                    frame_id=frame_id)
 
 
 def write_events_rosbag1(path, events, *, width: int, height: int, topic: str = DEFAULT_EVENT_TOPIC,

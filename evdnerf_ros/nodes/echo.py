@@ -26,6 +26,8 @@ class EchoReport:
     messages: int = 0
     bytes: int = 0
     events: int = 0
+    triggers: int = 0          # external-trigger events (EXT_TRIGGER edges), both edges
+    trigger_rising: int = 0
     seconds: float = 0.0
     rate_hz: float = 0.0
     mbytes_per_s: float = 0.0
@@ -86,6 +88,7 @@ class Echo(Node):
         """`depth`: the subscriber's keep-last history; deep, so that a slow first decode loses nothing."""
         super().__init__((), **kw)
         self.sub = self.create_subscription(topic, msgtype, qos, depth=depth, fast=fast)
+        self.sub.qos_fix = "subscribe with `evdnerf echo TOPIC --qos sensor_data` to hear a best-effort publisher"
         self.msgtype = msgtype
 
     def run(self, *, count: int = 0, duration: float = 0.0, idle: float = 0.0, png=None, npz=None,
@@ -99,12 +102,12 @@ class Echo(Node):
         for path in (png, npz):
             if path:
                 check_output(path, overwrite=overwrite)
-        from ..io.rosbag2 import BagMessage, _TopicDecoder
+        from ..io.bag_reader import BagMessage, TopicDecoder
 
         is_events = self.msgtype in (EVENT_PACKET, DVS_EVENT_ARRAY)
-        dec = _TopicDecoder(_LiveTopic(self.sub.topic, self.msgtype), self.sub.topic) if is_events else None
+        dec = TopicDecoder(_LiveTopic(self.sub.topic, self.msgtype), self.sub.topic) if is_events else None
         rep = EchoReport(self.sub.topic, self.msgtype)
-        sizes, chunks = [], []
+        sizes, chunks, trigger_chunks = [], [], []
         t_start = time.monotonic()
         t_first = t_last = None
         window = [t_start, 0, 0, 0]          # start, messages, bytes, events
@@ -133,6 +136,8 @@ class Echo(Node):
                     rep.width, rep.height, rep.encoding = pk.width, pk.height, pk.encoding
                     rep.first_stamp_ns = pk.stamp_ns if rep.first_stamp_ns is None else rep.first_stamp_ns
                     rep.last_stamp_ns = pk.stamp_ns
+                    if pk.triggers.size:
+                        trigger_chunks.append(pk.triggers)
                     if pk.events.size:
                         rep.events += int(pk.events.size)
                         window[3] += int(pk.events.size)
@@ -149,12 +154,14 @@ class Echo(Node):
                 print_fn(line)
                 window = [now, 0, 0, 0]
         if dec is not None and dec.stream is not None:
-            from ..io.rosbag2 import _decoded
+            from ..io.bag_reader import decoded_parts
 
-            tail, _ = _decoded(dec.stream.close())
+            tail, tail_triggers = decoded_parts(dec.stream.close())
             if tail.size:
                 rep.events += int(tail.size)
                 chunks.append(tail)
+            if tail_triggers.size:
+                trigger_chunks.append(tail_triggers)
         rep.seconds = (t_last - t_first) if t_first is not None and t_last is not None else 0.0
         if sizes:
             rep.size_min, rep.size_mean, rep.size_max = min(sizes), float(np.mean(sizes)), max(sizes)
@@ -162,9 +169,11 @@ class Echo(Node):
             rep.rate_hz = (rep.messages - 1) / rep.seconds
             rep.mbytes_per_s = rep.bytes / rep.seconds / 1e6
         if is_events:
-            from ..events.types import empty_events
+            from ..events.types import empty_events, empty_triggers
 
             ev = np.concatenate(chunks) if chunks else empty_events()
+            trig = np.concatenate(trigger_chunks) if trigger_chunks else empty_triggers()
+            rep.triggers, rep.trigger_rising = int(trig.size), int(np.count_nonzero(trig["value"] == 1))
             rep.ascii = ascii_image(ev, rep.width, rep.height)
             if png and rep.width:
                 from ..events import event_image, save_png
@@ -176,7 +185,8 @@ class Echo(Node):
 
                 with atomic_output(npz, overwrite=overwrite) as tmp:
                     with open(tmp, "wb") as f:
-                        np.savez(f, t=ev["t"], x=ev["x"], y=ev["y"], p=ev["p"], width=rep.width, height=rep.height)
+                        np.savez(f, t=ev["t"], x=ev["x"], y=ev["y"], p=ev["p"], width=rep.width, height=rep.height,
+                                 trigger_t=trig["t"], trigger_id=trig["id"], trigger_value=trig["value"])
                 rep.npz = str(npz)
         return rep
 
@@ -196,7 +206,9 @@ def format_report(rep: EchoReport) -> str:
              f"({rep.rate_hz:.1f} msg/s, {rep.mbytes_per_s:.3f} MB/s); message size min {rep.size_min} / mean "
              f"{rep.size_mean:.0f} / max {rep.size_max} B"]
     if rep.msgtype in (EVENT_PACKET, DVS_EVENT_ARRAY):
-        lines.append(f"{rep.events} events, {rep.width}x{rep.height}, encoding {rep.encoding or '-'}")
+        lines.append(f"{rep.events} events, {rep.width}x{rep.height}, encoding {rep.encoding or '-'}" +
+                     (f"; {rep.triggers} trigger events ({rep.trigger_rising} rising, "
+                      f"{rep.triggers - rep.trigger_rising} falling)" if rep.triggers else ""))
         if rep.ascii:
             lines.append(rep.ascii)
     if rep.png:

@@ -26,6 +26,7 @@ import numpy as np
 from ..errors import EvdnerfError, InputError
 from ..ros.node import Node
 from ..ros.parameters import ParameterSpec as P
+from ..sim.noise import DEFAULT_THRESHOLD
 
 NS = 1_000_000_000
 MAX_SECONDS = 4e9          # ~127 years: every time parameter stays well inside int64 nanoseconds
@@ -53,8 +54,8 @@ PARAMETERS = [
     P("camera.fov_deg", 0.0, "horizontal field of view (0: the scene's; 40 for a trained run)", min=0.0, max=179.0),
     P("camera.K", [], "pinhole intrinsics [fx, fy, cx, cy] in pixels; overrides fov_deg", type=list),
     P("supersample", 1, "s x s rays per pixel of the synthetic renderer", min=1, max=8),
-    P("c_pos", 0.2, "ON contrast threshold (log units)", min=1e-4),
-    P("c_neg", 0.2, "OFF contrast threshold (log units)", min=1e-4),
+    P("c_pos", DEFAULT_THRESHOLD, "ON contrast threshold (log units)", min=1e-4),
+    P("c_neg", DEFAULT_THRESHOLD, "OFF contrast threshold (log units)", min=1e-4),
     P("threshold_sigma", 0.0, "per-pixel threshold mismatch (std, log units)", min=0.0),
     P("refractory_ns", 0, "refractory period (ns)", min=0),
     P("shot_noise_hz", 0.0, "shot-noise events per pixel per second", min=0.0),
@@ -230,7 +231,7 @@ class EventPublisher(Node):
 
     def run(self) -> PublishReport:
         from ..events.codecs import quantize_to_us
-        from ..io.rosbag2 import EventMessageEncoder
+        from ..io.packetizer import Packetizer
         from ..sim.sampling import simulate_renderer
 
         p = self.params
@@ -241,7 +242,7 @@ class EventPublisher(Node):
         def sink(topic, msgtype, data, stamp):
             self.events_pub.publish_raw(data, stamp)
 
-        encoder = EventMessageEncoder(sink)
+        encoder = Packetizer(sink)
         chunk = max(1, int(round(p["chunk"] * NS)))
         info_every = int(round(p["camera_info_period"] * NS))
         factor = p["realtime_factor"]

@@ -100,16 +100,18 @@ class _Endpoint:
         self.qos = _qos.profile(profile)
         self._log = log or (lambda level, msg: None)
         self._warned = 0
+        #: how the user changes this endpoint's QoS (a command's own flag); None: the generic hint
+        self.qos_fix: str | None = None
 
     def _incompatible(self, status, side: str):
         if status.total_count > self._warned:
             self._warned = status.total_count
             policy = POLICY_NAMES.get(status.last_policy_id, f"policy id {status.last_policy_id}")
             other = "subscriber" if side == "offered" else "publisher"
+            fix = self.qos_fix or "use qos 'default' on the publisher, or 'sensor_data' on the subscriber"
             self._log("warn", f"topic {self.topic}: a {other} has incompatible QoS ({policy}); ours is "
                               f"{self.qos.describe()}. It receives nothing until both agree: a reliable "
-                              "subscriber needs a reliable publisher (use qos 'default' here, or "
-                              "'sensor_data' on the subscriber)")
+                              f"subscriber needs a reliable publisher ({fix})")
             return True
         return False
 

@@ -22,6 +22,7 @@ from ..types import as_events, sort_events
 from ._common import Decoded, DroppedEventsWarning, check_time_base
 from .evt2 import Evt2Decoder, Evt2Encoder
 from .evt3 import Evt3Decoder, Evt3Encoder
+from .libcaer import LibcaerCmpDecoder, LibcaerCmpEncoder, LibcaerDecoder, LibcaerEncoder
 from .mono import MonoDecoder, MonoEncoder
 
 __all__ = [
@@ -44,10 +45,12 @@ class StreamEncoder(Protocol):
     def encode(self, events, triggers=None) -> bytes: ...
 
 
-ENCODINGS = ("evt3", "evt2", "mono")
+ENCODINGS = ("evt3", "evt2", "mono", "libcaer", "libcaer_cmp")
 
-_DECODERS = {"evt3": Evt3Decoder, "evt2": Evt2Decoder, "mono": MonoDecoder}
-_ENCODERS = {"evt3": Evt3Encoder, "evt2": Evt2Encoder, "mono": MonoEncoder}
+_DECODERS = {"evt3": Evt3Decoder, "evt2": Evt2Decoder, "mono": MonoDecoder, "libcaer": LibcaerDecoder,
+             "libcaer_cmp": LibcaerCmpDecoder}
+_ENCODERS = {"evt3": Evt3Encoder, "evt2": Evt2Encoder, "mono": MonoEncoder, "libcaer": LibcaerEncoder,
+             "libcaer_cmp": LibcaerCmpEncoder}
 
 
 def _check_encoding(encoding) -> str:
