@@ -8,7 +8,7 @@ from evdnerf_ros.field import DynamicRegion, PlanesField, DNeRFField, event_foot
 from evdnerf_ros.field.render import camera_rays, normalize_points
 from evdnerf_ros.io.trainingset import TrainingSet
 from evdnerf_ros.geometry.camera import PinholeCamera, look_at
-from evdnerf_ros.train.sampler import camera_of, default_box
+from evdnerf_ros.train.rays import camera_of, default_box
 
 BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 

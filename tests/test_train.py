@@ -216,7 +216,7 @@ def test_trained_run_reads_back_what_train_wrote(train_h5, train_set, tmp_path):
     training set's time span and thresholds, as eval and the publisher use them."""
     from evdnerf_ros.geometry.camera import look_at
     from evdnerf_ros.train.run import TrainedRun
-    from evdnerf_ros.train.sampler import camera_of
+    from evdnerf_ros.train.rays import camera_of
 
     cfg = small_config(rays=32, occupancy_resolution=8, occupancy_warmup=0, occupancy_every=1)
     r = run_train(train_h5, tmp_path / "R", config=cfg, iters=3, log=lambda *_: None)

@@ -48,7 +48,7 @@ def test_untrained_planes_predicts_no_change(tiny_set):
     from evdnerf_ros.eval.evaluate import evaluate_views
     from evdnerf_ros.field import make_field
     from evdnerf_ros.io.trainingset import TrainingSet
-    from evdnerf_ros.train.sampler import default_box
+    from evdnerf_ros.train.rays import default_box
 
     field = make_field("planes").eval()
     with TrainingSet(tiny_set) as ts, torch.no_grad():

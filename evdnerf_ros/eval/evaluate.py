@@ -21,7 +21,7 @@ from ..events.slicing import window_edges
 from ..field.render import render_image
 from ..limits import check_memory
 from ..geometry.pose_track import PoseTrack
-from ..train.sampler import camera_of
+from ..train.rays import camera_of
 from .metrics import brightness_align, event_metrics, protocol_windows, psnr
 
 

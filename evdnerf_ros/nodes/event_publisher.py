@@ -25,63 +25,63 @@ import numpy as np
 
 from ..errors import EvdnerfError, InputError
 from ..ros.node import Node
-from ..ros.parameters import ParameterSpec as P
+from ..ros.parameters import ParameterSpec as Param
 from ..sim.noise import DEFAULT_THRESHOLD
 
 NS = 1_000_000_000
 MAX_SECONDS = 4e9          # ~127 years: every time parameter stays well inside int64 nanoseconds
 
 PARAMETERS = [
-    P("scene", "fork", "synthetic scene: a preset name (fork, jet-down, ...) or a scene YAML; unused with run_dir"),
-    P("run_dir", "", "trained run folder (checkpoint.pt from `evdnerf train`); empty: render `scene`", read_only=True),
-    P("field_duration", 0.0, "seconds of scene time the field's normalised time 0..1 spans (0: the "
+    Param("scene", "fork", "synthetic scene: a preset name (fork, jet-down, ...) or a scene YAML; unused with run_dir"),
+    Param("run_dir", "", "trained run folder (checkpoint.pt from `evdnerf train`); empty: render `scene`", read_only=True),
+    Param("field_duration", 0.0, "seconds of scene time the field's normalised time 0..1 spans (0: the "
       "trajectory's span)", min=0.0, max=MAX_SECONDS),
-    P("scene_time_offset", 0.0, "scene time (s) at the trajectory's first pose", min=-MAX_SECONDS, max=MAX_SECONDS),
-    P("trajectory", "", "robot poses: a bag (nav_msgs/Odometry, PoseStamped or /tf), .yaml or .csv; empty: a "
+    Param("scene_time_offset", 0.0, "scene time (s) at the trajectory's first pose", min=-MAX_SECONDS, max=MAX_SECONDS),
+    Param("trajectory", "", "robot poses: a bag (nav_msgs/Odometry, PoseStamped or /tf), .yaml or .csv; empty: a "
       "static camera at the scene's first ring view for `duration` seconds"),
-    P("trajectory_topic", "", "pose topic inside a trajectory bag (empty: the only pose topic)"),
-    P("trajectory_child_frame", "base_link", "robot frame (child_frame_id) when reading /tf"),
-    P("trajectory_max_gap", 0.5, "largest gap (s) between poses that is interpolated", min=1e-6, max=MAX_SECONDS),
-    P("duration", 0.0, "seconds to publish (0: the whole trajectory, or the scene's duration; else at least 1 ns)",
+    Param("trajectory_topic", "", "pose topic inside a trajectory bag (empty: the only pose topic)"),
+    Param("trajectory_child_frame", "base_link", "robot frame (child_frame_id) when reading /tf"),
+    Param("trajectory_max_gap", 0.5, "largest gap (s) between poses that is interpolated", min=1e-6, max=MAX_SECONDS),
+    Param("duration", 0.0, "seconds to publish (0: the whole trajectory, or the scene's duration; else at least 1 ns)",
       min=0.0, max=MAX_SECONDS),
-    P("camera.xyz", [0.0, 0.0, 0.0], "camera position in the robot frame (m)"),
-    P("camera.rpy_deg", [0.0, 0.0, 0.0], "camera orientation in the robot frame: roll, pitch, yaw (deg, fixed "
+    Param("camera.xyz", [0.0, 0.0, 0.0], "camera position in the robot frame (m)"),
+    Param("camera.rpy_deg", [0.0, 0.0, 0.0], "camera orientation in the robot frame: roll, pitch, yaw (deg, fixed "
       "axes x, y, z); the camera frame is OpenCV (x right, y down, z forward)"),
-    P("camera.quat", [], "camera orientation as a quaternion (x, y, z, w); overrides rpy_deg", type=list),
-    P("camera.matrix", [], "T_robot_cam as 16 row-major numbers; overrides xyz/rpy/quat", type=list),
-    P("camera.width", 0, "image width in pixels (0: the scene's)", min=0, max=65535),
-    P("camera.height", 0, "image height in pixels (0: the scene's)", min=0, max=65535),
-    P("camera.fov_deg", 0.0, "horizontal field of view (0: the scene's; 40 for a trained run)", min=0.0, max=179.0),
-    P("camera.K", [], "pinhole intrinsics [fx, fy, cx, cy] in pixels; overrides fov_deg", type=list),
-    P("supersample", 1, "s x s rays per pixel of the synthetic renderer", min=1, max=8),
-    P("c_pos", DEFAULT_THRESHOLD, "ON contrast threshold (log units)", min=1e-4),
-    P("c_neg", DEFAULT_THRESHOLD, "OFF contrast threshold (log units)", min=1e-4),
-    P("threshold_sigma", 0.0, "per-pixel threshold mismatch (std, log units)", min=0.0),
-    P("refractory_ns", 0, "refractory period (ns)", min=0),
-    P("shot_noise_hz", 0.0, "shot-noise events per pixel per second", min=0.0),
-    P("leak_rate_hz", 0.0, "leak events per pixel per second", min=0.0),
-    P("seed", 0, "seed of every random draw (noise, mismatch)", min=0),
-    P("adaptive", True, "adaptive time sampling (skip steps where nothing moves); false: fixed render_rate_hz"),
-    P("tolerance_c", 0.1, "adaptive sampling: allowed midpoint deviation from linear, in units of C", min=1e-6),
-    P("min_step_ns", 100_000, "adaptive sampling: finest step (ns)", min=1),
-    P("max_step_ns", 10_000_000, "adaptive sampling: coarsest step (ns)", min=1),
-    P("render_rate_hz", 1000.0, "fixed sampling rate when adaptive is false", min=1e-3),
-    P("leave_out", True, "render only pixels whose rays can hit something (scene primitives' screen boxes / the "
+    Param("camera.quat", [], "camera orientation as a quaternion (x, y, z, w); overrides rpy_deg", type=list),
+    Param("camera.matrix", [], "T_robot_cam as 16 row-major numbers; overrides xyz/rpy/quat", type=list),
+    Param("camera.width", 0, "image width in pixels (0: the scene's)", min=0, max=65535),
+    Param("camera.height", 0, "image height in pixels (0: the scene's)", min=0, max=65535),
+    Param("camera.fov_deg", 0.0, "horizontal field of view (0: the scene's; 40 for a trained run)", min=0.0, max=179.0),
+    Param("camera.K", [], "pinhole intrinsics [fx, fy, cx, cy] in pixels; overrides fov_deg", type=list),
+    Param("supersample", 1, "s x s rays per pixel of the synthetic renderer", min=1, max=8),
+    Param("c_pos", DEFAULT_THRESHOLD, "ON contrast threshold (log units)", min=1e-4),
+    Param("c_neg", DEFAULT_THRESHOLD, "OFF contrast threshold (log units)", min=1e-4),
+    Param("threshold_sigma", 0.0, "per-pixel threshold mismatch (std, log units)", min=0.0),
+    Param("refractory_ns", 0, "refractory period (ns)", min=0),
+    Param("shot_noise_hz", 0.0, "shot-noise events per pixel per second", min=0.0),
+    Param("leak_rate_hz", 0.0, "leak events per pixel per second", min=0.0),
+    Param("seed", 0, "seed of every random draw (noise, mismatch)", min=0),
+    Param("adaptive", True, "adaptive time sampling (skip steps where nothing moves); false: fixed render_rate_hz"),
+    Param("tolerance_c", 0.1, "adaptive sampling: allowed midpoint deviation from linear, in units of C", min=1e-6),
+    Param("min_step_ns", 100_000, "adaptive sampling: finest step (ns)", min=1),
+    Param("max_step_ns", 10_000_000, "adaptive sampling: coarsest step (ns)", min=1),
+    Param("render_rate_hz", 1000.0, "fixed sampling rate when adaptive is false", min=1e-3),
+    Param("leave_out", True, "render only pixels whose rays can hit something (scene primitives' screen boxes / the "
       "field's occupancy grid)"),
-    P("encoding", "evt3", "event message: evt3, evt2 or mono EventPacket, or array (dvs_msgs/EventArray)",
+    Param("encoding", "evt3", "event message: evt3, evt2 or mono EventPacket, or array (dvs_msgs/EventArray)",
       choices=("evt3", "evt2", "mono", "array")),
-    P("packet_ns", 1_000_000, "longest time span of one event message (ns)", min=1),
-    P("chunk", 0.01, "seconds of trajectory rendered and published per step", min=1e-6, max=MAX_SECONDS),
-    P("realtime_factor", 1.0, "1: real time; 2: twice as fast; 0: as fast as possible", min=0.0),
-    P("frame_id", "event_camera", "header.frame_id of events and camera info"),
-    P("qos", "default", "QoS profile of the published topics (default = reliable, keep-last 10; sensor_data = "
+    Param("packet_ns", 1_000_000, "longest time span of one event message (ns)", min=1),
+    Param("chunk", 0.01, "seconds of trajectory rendered and published per step", min=1e-6, max=MAX_SECONDS),
+    Param("realtime_factor", 1.0, "1: real time; 2: twice as fast; 0: as fast as possible", min=0.0),
+    Param("frame_id", "event_camera", "header.frame_id of events and camera info"),
+    Param("qos", "default", "QoS profile of the published topics (default = reliable, keep-last 10; sensor_data = "
       "best effort)", choices=("default", "sensor_data", "transient_local")),
-    P("camera_info_period", 1.0, "seconds of trajectory time between CameraInfo messages (also sent at once "
+    Param("camera_info_period", 1.0, "seconds of trajectory time between CameraInfo messages (also sent at once "
       "when a new subscriber appears)", min=1e-3, max=MAX_SECONDS),
-    P("bag", "", "also record into this rosbag2 (must not exist); empty: no bag", read_only=True),
-    P("bag_storage", "mcap", "rosbag2 storage of the bag", choices=("mcap", "sqlite3"), read_only=True),
-    P("wait_for_subscribers", 0, "wait until this many subscribers match ~/events before starting", min=0),
-    P("wait_timeout", 10.0, "seconds to wait for subscribers", min=0.0, max=MAX_SECONDS),
+    Param("bag", "", "also record into this rosbag2 (must not exist); empty: no bag", read_only=True),
+    Param("bag_storage", "mcap", "rosbag2 storage of the bag", choices=("mcap", "sqlite3"), read_only=True),
+    Param("wait_for_subscribers", 0, "wait until this many subscribers match ~/events before starting", min=0),
+    Param("wait_timeout", 10.0, "seconds to wait for subscribers", min=0.0, max=MAX_SECONDS),
 ]
 
 

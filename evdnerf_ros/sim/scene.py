@@ -304,7 +304,7 @@ class Scene:
 
 # ----------------------------------------------------------------------------- validation
 
-class _V:
+class _SceneChecker:
     """The scene's checks, bound to one source file: key paths written out as text
     (``objects[2].motion``), every check and message from ``evdnerf_ros.yamlcheck``."""
 
@@ -446,7 +446,7 @@ def load_scene_file(path, *, check_cameras: bool = True) -> Scene:
 def scene_from_dict(data, *, source: str = "<scene>", base_dir=None, default_name="scene",
                     check_cameras: bool = True) -> Scene:
     """Build and validate a Scene from already-parsed YAML data."""
-    v = _V(source, Path(base_dir) if base_dir is not None else None)
+    v = _SceneChecker(source, Path(base_dir) if base_dir is not None else None)
     top = v.mapping("", data, ("name", "description", "time", "background", "lights",
                                "objects", "cameras"), required=("objects",))
     name = v.string("name", top["name"]) if "name" in top else default_name
@@ -511,7 +511,7 @@ def _unit(x) -> np.ndarray:
     return x / np.linalg.norm(x)
 
 
-def _cameras(v: _V, data) -> CameraSetup:
+def _cameras(v: _SceneChecker, data) -> CameraSetup:
     c = v.mapping("cameras", data, ("ring", "intrinsics"))
     ring = CameraRing()
     if "ring" in c:
@@ -544,7 +544,7 @@ def _cameras(v: _V, data) -> CameraSetup:
     return CameraSetup(ring=ring, intrinsics=intr, fov_deg=fov)
 
 
-def _texture(v: _V, path, data) -> Texture:
+def _texture(v: _SceneChecker, path, data) -> Texture:
     m = v.mapping(path, data, ("type", "scale", "contrast", "seed", "axis"),
                   required=("type", "scale"))
     kind = v.choice(_join(path, "type"), m["type"], TEXTURE_TYPES)
@@ -568,7 +568,7 @@ _SHAPE_KEYS = {"box": ("size",), "sphere": ("radius",), "cylinder": ("radius", "
                "ellipsoid": ("radii",), "mesh": ("path", "scale"), "group": ("children",)}
 
 
-def _object(v: _V, path: str, data, group: SceneObject | None, start_ns: int,
+def _object(v: _SceneChecker, path: str, data, group: SceneObject | None, start_ns: int,
             names: dict[str, str]) -> SceneObject:
     if not isinstance(data, dict):
         v.fail(path, f"must be a mapping describing an object, got {yc.a_type(data)}")
@@ -639,7 +639,7 @@ def _object(v: _V, path: str, data, group: SceneObject | None, start_ns: int,
     return obj
 
 
-def _keyframe_times(v: _V, path, frames) -> np.ndarray:
+def _keyframe_times(v: _SceneChecker, path, frames) -> np.ndarray:
     times = []
     for i, f in enumerate(frames):
         times.append(v.time_ns(f"{path}[{i}].t_s", f["t_s"]))
@@ -649,7 +649,7 @@ def _keyframe_times(v: _V, path, frames) -> np.ndarray:
     return np.array(times, dtype=np.int64)
 
 
-def _motion(v: _V, path, data, obj: SceneObject, group, start_ns):
+def _motion(v: _SceneChecker, path, data, obj: SceneObject, group, start_ns):
     m = v.mapping(path, data, ("keyframes", "hinge"))
     if len(m) != 1:
         v.fail(path, "give exactly one of keyframes, hinge")
@@ -734,7 +734,7 @@ def _motion(v: _V, path, data, obj: SceneObject, group, start_ns):
     obj.motion = HingeMotion(axis, pivot, drive.angle_rad, (t0, t0 + profile.duration_ns))
 
 
-def _check_parents(v: _V, scene: Scene):
+def _check_parents(v: _SceneChecker, scene: Scene):
     names = {o.name: o for o in scene.all_objects()}
     for o in scene.all_objects():
         if o.parent is not None and o.parent not in names:

@@ -8,7 +8,7 @@ from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from .config import TrainConfig, resolve_config
 from .run import TrainedRun
 from .losses import bin_bounds, bin_loss, mse_loss, no_event_hinge
-from .sampler import RayBatch, RaySampler, default_box
+from .rays import RayBatch, RaySampler, default_box
 from .trainer import Trainer, TrainingDivergedError, plane_regularisers, run_train
 
 __all__ = ["TrainConfig", "resolve_config", "bin_bounds", "bin_loss", "mse_loss", "no_event_hinge",

@@ -54,7 +54,7 @@ from .ranges import NUMBERS, check_training_memory
 from .run import TrainedRun, train_set_record
 from .rundir import (CHECKPOINT_NAME, CONFIG_NAME, LOCK_NAME, METRICS_NAME, RunLock,
                      truncate_metrics, write_text)
-from .sampler import FrameSampler, RaySampler, default_box
+from .rays import FrameSampler, RaySampler, default_box
 from .thresholds import LearnedThresholds
 
 DEFAULT_ITERS = 2000
