@@ -43,6 +43,24 @@ class Renderer(Protocol):
     def __call__(self, T_world_cam, t_ns: int) -> np.ndarray: ...
 
 
+class CameraRenderer:
+    """What every renderer drawing through ``self.camera`` shares: its size, and calling it
+    renders.  Subclasses set ``camera`` and implement ``render``."""
+
+    camera: object
+
+    @property
+    def width(self) -> int:
+        return self.camera.width
+
+    @property
+    def height(self) -> int:
+        return self.camera.height
+
+    def __call__(self, T_world_cam, t_ns: int) -> np.ndarray:
+        return self.render(T_world_cam, t_ns)
+
+
 def check_renderer(renderer, what: str = "renderer") -> Renderer:
     """``renderer`` if it implements :class:`Renderer`, else an InputError saying what is missing."""
     missing = [a for a in ("camera", "width", "height", "render") if not hasattr(renderer, a)]

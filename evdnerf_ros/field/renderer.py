@@ -21,11 +21,12 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..renderer import CameraRenderer
 from .render import (camera_rays, normalize_points, ray_box_intersect, render_rays,
                      sample_along_rays)
 
 
-class FieldRenderer:
+class FieldRenderer(CameraRenderer):
     """Renders a field (in eval mode) through ``camera`` inside ``box``."""
 
     kind = "field"
@@ -54,14 +55,6 @@ class FieldRenderer:
         self.rays_total = 0
         self.rays_rendered = 0
         self._mask_cache = None
-
-    @property
-    def width(self) -> int:
-        return self.camera.width
-
-    @property
-    def height(self) -> int:
-        return self.camera.height
 
     def normalized_time(self, t_ns) -> float:
         """The field's time in [0, 1] of scene time ``t_ns`` (int64 ns)."""
@@ -116,7 +109,6 @@ class FieldRenderer:
         img = out.reshape(cam.height, cam.width).numpy().astype(np.float32)
         return np.maximum(img, 0.0)
 
-    __call__ = render
 
 
 __all__ = ["FieldRenderer"]

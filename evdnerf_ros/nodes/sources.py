@@ -16,10 +16,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
+from ..renderer import CameraRenderer
 from ..geometry.camera import PinholeCamera
 
 
-class SceneSource:
+class SceneSource(CameraRenderer):
     """A synthetic scene (preset name, YAML path or Scene) through ``camera``, counting the
     ray-primitive tests leave-out saves."""
 
@@ -38,20 +39,11 @@ class SceneSource:
     def rays_rendered(self) -> int:
         return int(self.renderer.stats.tests)
 
-    @property
-    def width(self) -> int:
-        return self.camera.width
-
-    @property
-    def height(self) -> int:
-        return self.camera.height
-
     def render(self, T_world_cam, t_ns: int) -> np.ndarray:
         s = self.renderer.supersample
         self.rays_total += self.camera.width * self.camera.height * s * s * len(self.scene.leaves)
         return self.renderer.render(T_world_cam, t_ns)
 
-    __call__ = render
 
 
 def FieldSource(run_dir, camera: PinholeCamera, *, duration_ns: int, leave_out: bool = True,

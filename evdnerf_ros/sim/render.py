@@ -39,6 +39,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import InputError
+from ..renderer import CameraRenderer
 from ..geometry.camera import PinholeCamera
 from ..geometry.poses import check_rigid
 from .scene import Scene, Texture
@@ -143,7 +144,7 @@ def _ray_dirs(camera: PinholeCamera, s: int) -> np.ndarray:
     return d
 
 
-class SceneRenderer:
+class SceneRenderer(CameraRenderer):
     """Renders one scene through one camera (a :class:`evdnerf_ros.renderer.Renderer`):
     ``render(T_world_cam, t_ns)`` / ``__call__`` -> intensity; ``render_result`` -> intensity,
     depth and mask."""
@@ -161,19 +162,10 @@ class SceneRenderer:
         self._bg_cache: tuple[bytes, int, np.ndarray] | None = None
 
     # public -----------------------------------------------------------------------
-    @property
-    def width(self) -> int:
-        return self.camera.width
-
-    @property
-    def height(self) -> int:
-        return self.camera.height
-
     def render(self, T_world_cam, t_ns) -> np.ndarray:
         """(H, W) float32 linear intensity at int64-ns time ``t_ns`` (the Renderer interface)."""
         return self.render_result(T_world_cam, t_ns, geometry=False).intensity
 
-    __call__ = render
 
     def render_result(self, T_world_cam, t_ns, *, geometry: bool = True) -> RenderResult:
         """Intensity and, with ``geometry``, depth and mask (else both None)."""
