@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from .errors import InputError
 from .limits import check_number
@@ -211,13 +210,9 @@ def _choices_metavar(spec: OptionSpec):
 def load_config(path, cls) -> dict:
     """The values of a YAML config file for `cls`, checked: unknown keys and bad values name the
     file and key."""
-    from .io.guard import read_text
+    from .yamlcheck import load_yaml
 
-    text = read_text(path, what="config file")
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise InputError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
+    data = load_yaml(path, what="config file")
     if data is None:
         return {}
     if not isinstance(data, dict):

@@ -12,12 +12,13 @@ RANK = {
     "units": 1, "limits": 1, "atomic": 1, "renderer": 1,
     "events": 2, "geometry": 2,
     "io": 3,
-    "yamlcheck": 4, "options": 4,
-    "ros": 5, "field": 5, "session": 5,
-    "sim": 6, "train": 6,
-    "eval": 7,
-    "nodes": 8, "demo": 8,
-    "cli": 9, "__main__": 10,
+    "yamlcheck": 4,
+    "options": 5,
+    "ros": 6, "field": 6, "session": 6,
+    "sim": 7, "train": 7,
+    "eval": 8,
+    "nodes": 9, "demo": 9,
+    "cli": 10, "__main__": 11,
 }
 #: Who may import the simulator: its own commands and the publisher (which simulates a scene).
 SIM_USERS = {"nodes", "demo", "cli"}
