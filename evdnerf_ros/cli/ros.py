@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 from ..errors import EvdnerfError
+from ..options import add_options, options_from_args
 from .common import number
 
 
@@ -36,10 +37,11 @@ def _cmd_publish(args) -> int:
 
 
 def _cmd_echo(args) -> int:
-    from ..nodes.echo import format_report, run_echo
+    from ..nodes.echo import EchoOptions, format_report, run_echo
 
-    rep = run_echo(args.topic, args.type, qos=args.qos, depth=args.depth, count=args.count, duration=args.duration,
-                   idle=args.idle, png=args.png, npz=args.save_events, overwrite=args.overwrite,
+    o = options_from_args(EchoOptions, args)
+    rep = run_echo(args.topic, o.type, qos=o.qos, depth=o.depth, count=o.count, duration=o.duration, idle=o.idle,
+                   png=o.png, npz=o.save_events, overwrite=o.overwrite,
                    print_fn=(lambda *_: None) if args.json else print)
     if args.json:
         print(json.dumps(rep.as_dict(), indent=2))
@@ -78,19 +80,8 @@ def register(sub) -> None:
                                    "ROS_LOCALHOST_ONLY) and report message rate, bandwidth and size; event "
                                    "topics are decoded and drawn as an ASCII event image (and --png).")
     p.add_argument("topic", help="absolute topic, e.g. /event_publisher/events")
-    p.add_argument("--type", default="event_camera_msgs/msg/EventPacket",
-                   help="message type (default %(default)s; e.g. dvs_msgs/msg/EventArray)")
-    p.add_argument("--qos", choices=["default", "sensor_data", "transient_local"], default="default",
-                   help="subscriber QoS profile (default %(default)s: reliable)")
-    p.add_argument("--depth", type=number(int, low=1, high=1_000_000), default=1000,
-                   help="subscriber history (keep-last) depth; deep so a slow start loses nothing (default %(default)s)")
-    p.add_argument("--count", type=number(int, low=0), default=0, help="stop after this many messages (0: no limit)")
-    p.add_argument("--duration", type=number(float, low=0, high=4e9), default=0.0, help="stop after this many seconds (0: no limit)")
-    p.add_argument("--idle", type=number(float, low=0, high=4e9), default=0.0,
-                   help="stop when nothing arrives for this many seconds, counted from the start "
-                        "until the first message (0: no limit)")
-    p.add_argument("--png", help="write the event image of everything received")
-    p.add_argument("--save-events", help="write the decoded events (.npz: t, x, y, p, width, height)")
-    p.add_argument("--overwrite", action="store_true", help="replace existing --png / --save-events files")
+    from ..nodes.echo import EchoOptions
+
+    add_options(p, EchoOptions)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=_cmd_echo)

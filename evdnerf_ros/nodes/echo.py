@@ -16,7 +16,26 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.typestore import DVS_EVENT_ARRAY, EVENT_PACKET, ros2_typestore
+from ..options import option
 from ..ros.node import Node
+
+
+@dataclass(frozen=True)
+class EchoOptions:
+    """Every knob of `evdnerf echo` (flags, --config keys and library defaults)."""
+
+    type: str = option(EVENT_PACKET, "message type (e.g. dvs_msgs/msg/EventArray)")
+    qos: str = option("default", "subscriber QoS profile ('default' is reliable)",
+                      choices=("default", "sensor_data", "transient_local"))
+    depth: int = option(1000, "subscriber history (keep-last) depth; deep so a slow start loses nothing",
+                        low=1, high=1_000_000)
+    count: int = option(0, "stop after this many messages (0: no limit)", low=0, high=10**12)
+    duration: float = option(0.0, "stop after this many seconds (0: no limit)", low=0, high=4e9)
+    idle: float = option(0.0, "stop when nothing arrives for this many seconds, counted from the start until "
+                              "the first message (0: no limit)", low=0, high=4e9)
+    png: str | None = option(None, "write the event image of everything received", kind=str)
+    save_events: str | None = option(None, "write the decoded events and trigger events (.npz)", kind=str)
+    overwrite: bool = option(False, "replace existing --png / --save-events files")
 
 
 @dataclass
@@ -83,16 +102,17 @@ def ascii_image(events: np.ndarray, width: int, height: int, cols: int = 64) -> 
 class Echo(Node):
     NAME = "evdnerf_echo"
 
-    def __init__(self, topic: str, msgtype: str = EVENT_PACKET, *, qos: str = "default", depth: int = 1000,
-                 fast: bool = True, **kw):
+    def __init__(self, topic: str, msgtype: str = EchoOptions.type, *, qos: str = EchoOptions.qos,
+                 depth: int = EchoOptions.depth, fast: bool = True, **kw):
         """`depth`: the subscriber's keep-last history; deep, so that a slow first decode loses nothing."""
         super().__init__((), **kw)
         self.sub = self.create_subscription(topic, msgtype, qos, depth=depth, fast=fast)
         self.sub.qos_fix = "subscribe with `evdnerf echo TOPIC --qos sensor_data` to hear a best-effort publisher"
         self.msgtype = msgtype
 
-    def run(self, *, count: int = 0, duration: float = 0.0, idle: float = 0.0, png=None, npz=None,
-            overwrite: bool = False, print_fn=print, keep_events: bool = True) -> EchoReport:
+    def run(self, *, count: int = EchoOptions.count, duration: float = EchoOptions.duration,
+            idle: float = EchoOptions.idle, png=None, npz=None, overwrite: bool = False, print_fn=print,
+            keep_events: bool = True) -> EchoReport:
         """Listen until `count` messages, `duration` seconds, or `idle` seconds without a message
         (counted from the start while none has come), or SIGINT / SIGTERM.
 
@@ -191,8 +211,8 @@ class Echo(Node):
         return rep
 
 
-def run_echo(topic: str, msgtype: str = EVENT_PACKET, *, qos: str = "default", depth: int = 1000, domain_id=None,
-             dds_config=None, **run_kw) -> EchoReport:
+def run_echo(topic: str, msgtype: str = EchoOptions.type, *, qos: str = EchoOptions.qos,
+             depth: int = EchoOptions.depth, domain_id=None, dds_config=None, **run_kw) -> EchoReport:
     if not isinstance(topic, str) or not topic.startswith("/"):
         raise InputError(f"topic {topic!r}: give the absolute topic name, e.g. /event_publisher/events")
     node = Echo(topic, msgtype, qos=qos, depth=depth, domain_id=domain_id, dds_config=dds_config)
