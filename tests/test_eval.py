@@ -245,14 +245,32 @@ def test_report_from_two_runs(tmp_path):
     res = run_report([tmp_path / "a", tmp_path / "b"], tmp_path / "rep")
     assert (tmp_path / "rep" / "report.png").read_bytes()[:8] == PNG_MAGIC
     md = (tmp_path / "rep" / "report.md").read_text()
-    assert "| planes | 200 | 61.5 | 25.00 | 24.00 | 19.50 |" in md
-    assert "| dnerf | 10 | 60.0 | 21.00 | 21.00 | 19.50 |" in md
+    assert "| planes | 200 | 61.5 | 25.00 | 24.00 | 19.50 | – | – |" in md
+    assert "| dnerf | 10 | 60.0 | 21.00 | 21.00 | 19.50 | – | – |" in md
     assert [r["run"] for r in res["runs"]] == ["planes", "dnerf"]
     assert markdown_table([tmp_path / "b"]).count("\n") == 3
     plot_runs([tmp_path / "a"], tmp_path / "one.png")
     assert (tmp_path / "one.png").read_bytes()[:8] == PNG_MAGIC
     assert read_metrics(tmp_path / "a")["iter"].tolist() == [0, 100, 200]
     assert not list((tmp_path / "rep").glob(".*partial*"))
+
+
+def test_report_with_the_true_scene(tmp_path):
+    """Runs on a simulated set log the true scene's score and the margin closed (null: no margin)."""
+    run = tmp_path / "t"
+    run.mkdir()
+    lines = [{"iter": 10, "wall_s": 5.0, "val_psnr": 31.0, "val_psnr_zero_floor": 30.0, "val_psnr_truth": 40.0,
+              "val_margin_closed": 0.1},
+             {"iter": 20, "wall_s": 9.0, "val_psnr": 36.0, "val_psnr_zero_floor": 30.0, "val_psnr_truth": 40.0,
+              "val_margin_closed": 0.6}]
+    (run / "metrics.jsonl").write_text("\n".join(json.dumps(x) for x in lines) + "\n")
+    res = run_report([run], tmp_path / "rep")
+    assert "| t | 20 | 9.0 | 36.00 | 36.00 | 30.00 | 40.00 | 60 % |" in (tmp_path / "rep" / "report.md").read_text()
+    assert res["runs"][0]["margin_closed"] == pytest.approx(0.6)
+    lines[1]["val_margin_closed"] = None
+    (run / "metrics.jsonl").write_text("\n".join(json.dumps(x) for x in lines) + "\n")
+    assert read_metrics(run)["margin"][1] != read_metrics(run)["margin"][1]       # NaN: no margin
+    assert run_report([run], tmp_path / "rep", overwrite=True)["runs"][0]["margin_closed"] is None
 
 
 @pytest.mark.parametrize("line, msg", [

@@ -20,8 +20,9 @@ RANK = {
     "nodes": 9, "demo": 9,
     "cli": 10, "__main__": 11,
 }
-#: Who may import the simulator: its own commands and the publisher (which simulates a scene).
-SIM_USERS = {"nodes", "demo", "cli"}
+#: Who may import the simulator: its own commands, the publisher (which simulates a scene) and
+#: evaluation (which scores the true scene of a simulated training set as its reference).
+SIM_USERS = {"nodes", "demo", "cli", "eval"}
 
 
 def package_imports() -> dict[str, set[str]]:

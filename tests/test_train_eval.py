@@ -24,6 +24,12 @@ def test_train_then_eval_pipeline(tiny_set, tmp_path, capsys):
     lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     evals = [x for x in lines if "val_psnr" in x]
     assert len(evals) >= 2 and all(np.isfinite(x["val_psnr"]) for x in evals)
+    # the true scene as the reference: scored once, better than the floor, the margin fraction logged
+    assert all(x["val_psnr_truth"] > x["val_psnr_zero_floor"] for x in evals)
+    assert len({x["val_psnr_truth"] for x in evals}) == 1
+    assert all(x["val_margin_closed"] == pytest.approx((x["val_psnr"] - x["val_psnr_zero_floor"]) /
+                                                        (x["val_psnr_truth"] - x["val_psnr_zero_floor"]))
+               for x in evals)
     assert all(b["wall_s"] > a["wall_s"] for a, b in zip(evals, evals[1:]))
     capsys.readouterr()
     assert main(["eval", str(run), str(tiny_set), "--json", "--max-views", "2"]) == 0
@@ -32,6 +38,13 @@ def test_train_then_eval_pipeline(tiny_set, tmp_path, capsys):
         for factor in (1, 4, 8):
             m = result[f"{split}_windows_x{factor}"]
             assert all(np.isfinite(m[k]["psnr"]) for k in ("continuous", "quantized", "zero_floor"))
+            # quantised, the truth beats the floor at every window size; continuous, its sub-threshold
+            # dL costs it at fine windows (there the continuous margin is None: nothing to close)
+            assert m["truth"]["quantized"]["psnr"] > m["zero_floor"]["psnr"]
+            assert m["margin_closed"]["quantized"] is not None
+            if factor == 1:
+                assert m["truth"]["continuous"]["psnr"] > m["zero_floor"]["psnr"]
+    assert result["true_scene"] == "fork"
     assert result["val_windows_x8"]["windows_per_view"] > result["val_windows_x1"]["windows_per_view"]
     assert (run / "eval_events.png").exists()
     # the moving camera is scored apart from the protocol's static validation views

@@ -23,12 +23,18 @@ from ..limits import check_memory
 from ..geometry.pose_track import PoseTrack
 from ..train.rays import camera_of
 from .metrics import brightness_align, event_metrics, protocol_windows, psnr
+from .truth import TrueScene, margin_closed
 
 
 def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: int,
                    log_eps: float, near: float = 0.0, far: float = float("inf"),
-                   background: float = 0.0, occupancy=None, dynamic=None, windows=None):
-    """(pred (K, H, W), gt (K, H, W), metrics) over `views` x the chosen windows."""
+                   background: float = 0.0, occupancy=None, dynamic=None, windows=None, truth=None,
+                   truth_metrics=None):
+    """(pred (K, H, W), gt (K, H, W), metrics) over `views` x the chosen windows.
+
+    With `truth` (a TrueScene), metrics also hold "truth" (the true scene scored by the same
+    protocol; pass `truth_metrics` to reuse an earlier score of the same views and windows)
+    and "margin_closed": (field - floor) / (truth - floor) of PSNR, continuous and quantised."""
     t0, t1 = train_set.time_range
     edges = window_edges(t0, t1, n_windows)
     ks = protocol_windows(n_windows) if windows is None else list(windows)
@@ -57,7 +63,16 @@ def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: i
             preds.append(np.log(b1 + log_eps) - np.log(b0 + log_eps))
     pred, gt = np.stack(preds).astype(np.float32), np.concatenate(gts)
     c_pos, c_neg = train_set.thresholds
-    return pred, gt, event_metrics(pred, gt, c_pos=c_pos, c_neg=c_neg)
+    m = event_metrics(pred, gt, c_pos=c_pos, c_neg=c_neg)
+    if truth is not None:
+        if truth_metrics is None:
+            true = np.concatenate([truth.log_change_stack(v, edges, ks) for v in views])
+            truth_metrics = event_metrics(true, gt, c_pos=c_pos, c_neg=c_neg)
+        m["truth"] = truth_metrics
+        floor = m["zero_floor"]["psnr"]
+        m["margin_closed"] = {kind: margin_closed(m[kind]["psnr"], floor, truth_metrics[kind]["psnr"])
+                              for kind in ("continuous", "quantized")}
+    return pred, gt, m
 
 
 def validation_eval(*, n_windows: int | None = None, max_views: int | None = None):
@@ -65,16 +80,30 @@ def validation_eval(*, n_windows: int | None = None, max_views: int | None = Non
 
     `n_windows` defaults to the trainer's current window count; `max_views` bounds the cost.
     """
+    truths: dict = {}       # the true scene's score per (views, windows): it never changes
+
     def eval_fn(field, ctx) -> dict:
         ts = ctx["train_set"]
         views = (static_views(ts, ts.val_views) or ts.train_views)[:max_views]
-        _, _, m = evaluate_views(field, ts, views, n_windows or ctx["windows"], box=ctx["box"],
+        windows = n_windows or ctx["windows"]
+        if "scene" not in truths:
+            truths["scene"] = TrueScene.of(ts)[0]
+        key = (tuple(views), windows)
+        _, _, m = evaluate_views(field, ts, views, windows, box=ctx["box"],
                                  n_samples=ctx["n_samples"], log_eps=ctx["log_eps"],
                                  near=ctx["near"], far=ctx["far"], background=ctx["background"],
-                                 occupancy=ctx["occupancy"], dynamic=ctx.get("dynamic"))
-        return {"val_psnr": m["continuous"]["psnr"], "val_psnr_zero_floor": m["zero_floor"]["psnr"],
-                "val_psnr_quantized": m["quantized"]["psnr"], "val_ssim": m["continuous"]["ssim"],
-                "val_mae": m["continuous"]["mae"], "val_views": len(views)}
+                                 occupancy=ctx["occupancy"], dynamic=ctx.get("dynamic"),
+                                 truth=truths["scene"], truth_metrics=truths.get(key))
+        out = {"val_psnr": m["continuous"]["psnr"], "val_psnr_zero_floor": m["zero_floor"]["psnr"],
+               "val_psnr_quantized": m["quantized"]["psnr"], "val_ssim": m["continuous"]["ssim"],
+               "val_mae": m["continuous"]["mae"], "val_views": len(views)}
+        if "truth" in m:
+            truths[key] = m["truth"]
+            out.update(val_psnr_truth=m["truth"]["continuous"]["psnr"],
+                       val_psnr_truth_quantized=m["truth"]["quantized"]["psnr"],
+                       val_margin_closed=m["margin_closed"]["continuous"],
+                       val_margin_closed_quantized=m["margin_closed"]["quantized"])
+        return out
 
     return eval_fn
 
@@ -137,6 +166,10 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
               "trained_windows": n, "lpips": None,
               "lpips_note": "not computed: LPIPS needs AlexNet weights, which cannot be downloaded here"}
     with TrainingSet(train_h5) as ts, torch.no_grad():
+        truth, why = TrueScene.of(ts)
+        result["true_scene"] = truth.record["scene"] if truth is not None else None
+        if truth is None:
+            result["true_scene_note"] = why
         splits = {"val": static_views(ts, ts.val_views)[:max_views],
                   "train": ts.train_views[:max_views],
                   "moving": moving_views(ts, ts.val_views)[:max_views]}
@@ -151,15 +184,22 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
                 pred, gt, m = evaluate_views(field, ts, views, n * factor, box=box,
                                              n_samples=cfg.n_samples, log_eps=cfg.log_eps,
                                              near=cfg.near, far=cfg.far, background=cfg.background,
-                                             dynamic=dynamic)
+                                             dynamic=dynamic, truth=truth)
                 key = f"{split}_windows_x{factor}"
                 result[key] = {name: {k: v for k, v in m[name].items() if k != "psnr_per_window"}
                                for name in ("continuous", "quantized", "zero_floor")}
+                if "truth" in m:
+                    result[key]["truth"] = {kind: {k: v for k, v in m["truth"][kind].items()
+                                                   if k != "psnr_per_window"}
+                                            for kind in ("continuous", "quantized")}
+                    result[key]["margin_closed"] = m["margin_closed"]
                 result[key]["views"] = len(views)
                 result[key]["windows_per_view"] = int(pred.shape[0] // len(views))
                 log(f"{key}: events PSNR {m['continuous']['psnr']:.2f} dB (quantised "
                     f"{m['quantized']['psnr']:.2f}, all-zero floor {m['zero_floor']['psnr']:.2f}), "
-                    f"SSIM {m['continuous']['ssim']:.3f}, MAE {m['continuous']['mae']:.4f}")
+                    f"SSIM {m['continuous']['ssim']:.3f}, MAE {m['continuous']['mae']:.4f}" +
+                    (f"; true scene {m['truth']['continuous']['psnr']:.2f} dB, margin closed "
+                     f"{_percent(m['margin_closed']['continuous'])}" if "truth" in m else ""))
                 if split == "val" and factor == 1 and image_path is not None:
                     side_by_side(gt, pred, image_path)
                     result["image"] = str(image_path)
@@ -176,3 +216,7 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
                                  "brightness-aligned render, depth")
                 result["intensity"]["image"] = str(path)
     return result
+
+
+def _percent(fraction) -> str:
+    return "n/a (no margin)" if fraction is None else f"{100 * fraction:.0f} %"

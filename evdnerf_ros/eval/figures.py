@@ -131,7 +131,9 @@ def read_metrics(run_dir) -> dict:
         if "val_psnr" not in obj:
             continue
         rows.append((it, wall, _number(obj, "val_psnr", where),
-                     _number(obj, "val_psnr_zero_floor", where)))
+                     _number(obj, "val_psnr_zero_floor", where),
+                     _optional_number(obj, "val_psnr_truth", where),
+                     _optional_number(obj, "val_margin_closed", where)))
         if label is None and isinstance(obj.get("label"), str) and obj["label"]:
             label = obj["label"]
     if not rows:
@@ -140,7 +142,13 @@ def read_metrics(run_dir) -> dict:
     a = np.array(rows, np.float64)
     return {"label": label or run_dir.resolve().name, "path": str(path),
             "iter": a[:, 0].astype(np.int64), "wall_s": a[:, 1], "val_psnr": a[:, 2],
-            "floor": a[:, 3]}
+            "floor": a[:, 3], "truth": a[:, 4], "margin": a[:, 5]}
+
+
+def _optional_number(obj: dict, key: str, where: str) -> float:
+    """A metric only some runs log (the true scene's score, the margin closed): NaN when absent
+    or null (a static scene has no margin)."""
+    return float("nan") if obj.get(key) is None else _number(obj, key, where)
 
 
 def _load_all(run_dirs) -> list[dict]:
@@ -154,7 +162,12 @@ def _summary(r: dict) -> dict:
     return {"run": r["label"], "metrics": r["path"], "iterations": int(r["iter"].max()),
             "wall_s": float(r["wall_s"].max()), "best_psnr": float(r["val_psnr"].max()),
             "final_psnr": float(r["val_psnr"][-1]), "zero_floor": float(r["floor"][-1]),
+            "true_scene": _finite_or_none(r["truth"][-1]), "margin_closed": _finite_or_none(r["margin"][-1]),
             "n_evals": int(r["iter"].size)}
+
+
+def _finite_or_none(x) -> float | None:
+    return float(x) if np.isfinite(x) else None
 
 
 def plot_runs(run_dirs, path, *, title: str = "validation events-PSNR against wall time") -> Path:
@@ -164,28 +177,47 @@ def plot_runs(run_dirs, path, *, title: str = "validation events-PSNR against wa
 
 def _plot(runs: list[dict], path, title: str, *, overwrite: bool = True) -> Path:
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4))
+    margins = any(np.isfinite(r["margin"]).any() for r in runs)
+    fig, axes = plt.subplots(1, 2 if margins else 1, figsize=(12 if margins else 7, 4), squeeze=False)
+    ax = axes[0, 0]
     for i, r in enumerate(runs):
         colour = f"C{i % 10}"
         ax.plot(r["wall_s"], r["val_psnr"], "-o", color=colour, markersize=3, label=r["label"])
         ax.plot(r["wall_s"], r["floor"], "--", color=colour, linewidth=1,
                 label=f"{r['label']} zero floor")
+        if np.isfinite(r["truth"]).any():
+            ax.plot(r["wall_s"], r["truth"], ":", color=colour, linewidth=1.5,
+                    label=f"{r['label']} true scene")
+        if margins and np.isfinite(r["margin"]).any():
+            axes[0, 1].plot(r["wall_s"], 100 * r["margin"], "-o", color=colour, markersize=3, label=r["label"])
     ax.set_xlabel("wall time [s]")
     ax.set_ylabel("events PSNR [dB]")
     ax.set_title(title, fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
+    if margins:
+        m = axes[0, 1]
+        m.axhline(0, color="k", linewidth=0.8)
+        m.axhline(100, color="k", linewidth=0.8, linestyle=":")
+        m.set_xlabel("wall time [s]")
+        m.set_ylabel("floor-to-truth margin closed [%]")
+        m.set_title("(field - floor) / (true scene - floor)", fontsize=10)
+        m.grid(alpha=0.3)
+        m.legend(fontsize=7)
     fig.tight_layout()
     return save_figure(fig, path, overwrite=overwrite)
 
 
 def _table(summaries: list[dict]) -> str:
-    lines = ["| run | iterations | wall time [s] | best PSNR [dB] | final PSNR [dB] | zero floor [dB] |",
-             "|---|---:|---:|---:|---:|---:|"]
+    lines = ["| run | iterations | wall time [s] | best PSNR [dB] | final PSNR [dB] | zero floor [dB] "
+             "| true scene [dB] | margin closed |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for s in summaries:
         name = s["run"].replace("|", "\\|")
+        truth = "–" if s["true_scene"] is None else f"{s['true_scene']:.2f}"
+        margin = "–" if s["margin_closed"] is None else f"{100 * s['margin_closed']:.0f} %"
         lines.append(f"| {name} | {s['iterations']} | {s['wall_s']:.1f} | {s['best_psnr']:.2f} "
-                     f"| {s['final_psnr']:.2f} | {s['zero_floor']:.2f} |")
+                     f"| {s['final_psnr']:.2f} | {s['zero_floor']:.2f} | {truth} | {margin} |")
     return "\n".join(lines) + "\n"
 
 
@@ -212,7 +244,8 @@ def run_report(run_dirs, out_dir, *, overwrite: bool = False) -> dict:
     _plot(runs, png, "validation events-PSNR against wall time", overwrite=overwrite)
     text = ("# Events-PSNR against wall time\n\n"
             "![events-PSNR against wall time](report.png)\n\n"
-            "Solid: validation events-PSNR; dashed: the all-zero-prediction floor.\n\n"
+            "Solid: validation events-PSNR; dashed: the all-zero-prediction floor; dotted: the true "
+            "scene (simulated sessions), with the fraction of the floor-to-truth margin closed.\n\n"
             + _table(summaries))
     with atomic_output(md, overwrite=overwrite) as tmp:
         tmp.write_text(text, encoding="utf-8")

@@ -569,6 +569,9 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
                 "intrinsics_source": options.intrinsics, "poses_source": options.poses, "topics": topics,
                 "views": prov_views,
             }
+            truth = _truth_record(session.data.get("source"), prov_views, session.data.get("options"))
+            if truth is not None:
+                provenance["truth"] = truth
             w.finish(t_end=end, provenance=provenance, scene_bounds=scene_bounds,
                      attrs={"offsets_source": offsets_source, "window_source": window_source})
             for plan in plans:
@@ -693,6 +696,22 @@ class _BackgroundAppender:
 
 
 # =========================================================================== entry points
+
+
+def _truth_record(source: dict | None, views: dict, options: dict | None) -> dict | None:
+    """What evaluation needs to render the true scene (evdnerf_ros.eval.truth): None unless the
+    session was simulated and every view's injected clock offset is known. The view clock reads
+    scene time + clock offset, so the scene time at the common origin is offset - clock offset."""
+    if not source or source.get("kind") != "simulation" or not source.get("scene_ref"):
+        return None
+    origin = {}
+    for name, v in views.items():
+        gt = v.get("ground_truth_clock_offset_ns")
+        if gt is None:
+            return None
+        origin[name] = int(v["offset_ns"]) - int(gt)
+    return {"scene": str(source["scene_ref"]), "supersample": int((options or {}).get("supersample", 2)),
+            "scene_time_at_origin_ns": origin}
 
 
 def run_convert(session_dir, out, options: ConvertOptions | None = None, *, overwrite: bool = False,

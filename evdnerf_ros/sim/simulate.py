@@ -583,6 +583,12 @@ def _write_ground_truth(renderer, pose_at, scene, task, options, path) -> int:
     return n
 
 
+def _scene_ref(scene_ref) -> str:
+    """A preset's name, or a scene file's absolute path (so a later evaluation finds it)."""
+    p = Path(str(scene_ref))
+    return str(p.resolve()) if p.is_file() else str(scene_ref)
+
+
 def _session_yaml(scene, scene_ref, camera, options, tasks, results) -> dict:
     by_name = {r.name: r for r in results}
     span = scene.motion_span_ns()
@@ -604,7 +610,7 @@ def _session_yaml(scene, scene_ref, camera, options, tasks, results) -> dict:
             simulation={"renders": r.renders, "seconds": round(r.seconds, 3), **r.stats}))
     ring = scene.cameras.ring
     return session_document(
-        source={"kind": "simulation", "scene": scene.name, "scene_ref": str(scene_ref),
+        source={"kind": "simulation", "scene": scene.name, "scene_ref": _scene_ref(scene_ref),
                 "seed": options.seed},
         rig={"kind": "virtual", "ring_radius_m": ring.radius,
              "elevation_deg": ring.elevation_deg, "look_at": list(map(float, ring.look_at)),
