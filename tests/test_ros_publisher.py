@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from evdnerf_ros.cli import main
-from evdnerf_ros.errors import InputError
+from evdnerf_ros.errors import EvdnerfError, InputError
 from evdnerf_ros.geometry.rotations import matrix_to_quat, quat_from_ros, quat_to_matrix, quat_to_ros
 from evdnerf_ros.io import messages
 from evdnerf_ros.io.poses import extrinsics, load_poses
@@ -335,3 +335,39 @@ def test_event_publisher_executable_help_and_errors(capsys):
     assert "parameter 'encoding': 'evt4' is not one of" in capsys.readouterr().err
     assert exe(["stray", "--ros-args"]) == 2
     assert "unexpected arguments ['stray']" in capsys.readouterr().err
+
+
+def test_a_trained_run_without_trajectory_orbits_its_training_views(tmp_path):
+    """`publish --run RUN` alone: the camera the run was trained with, once round its training views."""
+    import torch
+
+    from evdnerf_ros.field import make_field
+    from evdnerf_ros.io.messages import intrinsics_from_camera_info
+    from evdnerf_ros.train.checkpoint import save_checkpoint
+    from evdnerf_ros.train.config import TrainConfig
+    from evdnerf_ros.train.run import TrainedRun
+
+    cfg = TrainConfig()
+    torch.manual_seed(1)
+    ring = [look_at([3 * np.cos(a), 3 * np.sin(a), 0.5], [0.0, 0.0, 0.0]).tolist()
+            for a in np.radians([0, 270, 90, 180])]                  # stored out of azimuth order
+    for name, train_set in (("run", {"time_range_ns": [0, 40_000_000], "thresholds": [0.2, 0.2],
+                                     "camera": [14, 10, 12.0, 12.0, 6.5, 4.5], "ring": ring}),
+                            ("old", {"time_range_ns": [0, 40_000_000], "thresholds": [0.2, 0.2]})):
+        (tmp_path / name).mkdir()
+        save_checkpoint(tmp_path / name / "checkpoint.pt", field=make_field(cfg.backbone, **cfg.field),
+                        optimizer=None, iteration=0, config=cfg.to_dict(), backbone=cfg.backbone, rng={},
+                        box=[[-1, -1, -1], [1, 1, 1]], extra={"train_set": train_set})
+    t, T = TrainedRun.load(tmp_path / "run").orbit(40_000_000)
+    assert t.tolist() == [0, 10_000_000, 20_000_000, 30_000_000, 40_000_000]
+    az = np.degrees(np.arctan2(T[:, 1, 3], T[:, 0, 3])) % 360
+    assert np.all(np.diff(np.unwrap(np.radians(az))) > 0) and np.array_equal(T[0], T[-1])
+    no_size = {"camera.width": 0, "camera.height": 0}
+    rep, bag = publish(tmp_path, run_dir=str(tmp_path / "run"), **no_size)
+    assert rep.renders > 20
+    with open_bag(bag) as b:
+        (_, info), *_ = list(b.read_messages([n for n in b.topics if n.endswith("camera_info")][0]))
+    got = intrinsics_from_camera_info(info)
+    assert (got["width"], got["height"]) == (14, 10) and got["K"][0, 0] == 12.0
+    with pytest.raises(EvdnerfError, match="records no ring .* give a trajectory"):
+        publish(tmp_path, name="c", run_dir=str(tmp_path / "old"), **{"camera.width": 8, "camera.height": 8})

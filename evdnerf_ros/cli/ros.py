@@ -61,7 +61,8 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", help="rosbag2 to write (must not exist)")
     p.add_argument("--dds", action="store_true", help="also publish over DDS")
     p.add_argument("--scene", help="scene preset or YAML (default fork)")
-    p.add_argument("--run", help="trained run folder instead of a synthetic scene")
+    p.add_argument("--run", help="trained run folder instead of a synthetic scene (without --trajectory: once round "
+                                  "its training views, with the camera it was trained with)")
     p.add_argument("--trajectory", help="robot poses: bag (Odometry, PoseStamped, /tf), .yaml or .csv")
     p.add_argument("--resolution", type=number(int, low=1, high=16_384), nargs=2, metavar=("W", "H"),
                    help="camera size, 1..16384 each (default: the scene's)")

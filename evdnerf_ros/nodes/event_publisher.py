@@ -38,7 +38,8 @@ PARAMETERS = [
       "trajectory's span)", min=0.0, max=MAX_SECONDS),
     Param("scene_time_offset", 0.0, "scene time (s) at the trajectory's first pose", min=-MAX_SECONDS, max=MAX_SECONDS),
     Param("trajectory", "", "robot poses: a bag (nav_msgs/Odometry, PoseStamped or /tf), .yaml or .csv; empty: a "
-      "static camera at the scene's first ring view for `duration` seconds"),
+      "static camera at the scene's first ring view for `duration` seconds, or for a trained run once round "
+      "its training views over its training span"),
     Param("trajectory_topic", "", "pose topic inside a trajectory bag (empty: the only pose topic)"),
     Param("trajectory_child_frame", "base_link", "robot frame (child_frame_id) when reading /tf"),
     Param("trajectory_max_gap", 0.5, "largest gap (s) between poses that is interpolated", min=1e-6, max=MAX_SECONDS),
@@ -148,11 +149,14 @@ class EventPublisher(Node):
         from ..geometry.camera import PinholeCamera
 
         p = self.params
-        base = self.scene.camera if self.scene is not None else None
+        base = self.scene.camera if self.scene is not None else self._run().train_camera
+        if base is not None and not (p["camera.width"] or p["camera.height"] or p["camera.K"] or p["camera.fov_deg"]):
+            return base                  # the scene's camera, or the camera the run was trained on
         w = p["camera.width"] or (base.width if base else 0)
         h = p["camera.height"] or (base.height if base else 0)
         if not w or not h:
-            raise InputError("camera.width and camera.height are needed with a trained run (e.g. 346 x 260)")
+            raise InputError("camera.width and camera.height are needed with a run that did not record its "
+                             "training camera (e.g. 346 x 260)")
         K = p["camera.K"]
         if K:
             if len(K) != 4 or not all(isinstance(v, (int, float)) for v in K):
@@ -181,8 +185,13 @@ class EventPublisher(Node):
             else:
                 T_robot_cam = extrinsics(p["camera.xyz"], p["camera.rpy_deg"], p["camera.quat"] or None,
                                          what="parameters 'camera.xyz' / 'camera.rpy_deg' / 'camera.quat'")
-        elif self.scene is None:
-            raise InputError("a trained run needs a trajectory (a bag, YAML or CSV of poses)")
+        elif self.scene is None:       # a trained run: once round its training views
+            run = self._run()
+            span = run.time_range_ns[1] - run.time_range_ns[0] if run.time_range_ns else 0
+            t, T = run.orbit(int(round(p["field_duration"] * NS)) or dur or span or NS)
+            t0, t1 = 0, int(t[-1])
+            track = PoseTrack(t, T, source=f"{p['run_dir']}: orbit of its training views")
+            T_robot_cam = np.eye(4)
         else:      # a static camera at the scene's first ring view: that pose is the camera's own
             T = self.scene.camera_poses("train")[0]
             t0, t1 = 0, dur or int(self.scene.duration_ns)
@@ -194,6 +203,14 @@ class EventPublisher(Node):
             raise InputError(f"nothing to publish: the time span [{t0}, {t1}] ns is empty")
         return t0, t1, track, T_robot_cam
 
+    def _run(self):
+        """The trained run (loaded once)."""
+        if getattr(self, "_trained_run", None) is None:
+            from ..train.run import TrainedRun
+
+            self._trained_run = TrainedRun.load(self.params["run_dir"])
+        return self._trained_run
+
     def _source(self):
         from .sources import FieldSource, SceneSource
 
@@ -201,7 +218,7 @@ class EventPublisher(Node):
         if self.scene is not None:
             return SceneSource(self.scene, self.camera, supersample=p["supersample"], leave_out=p["leave_out"])
         duration = int(round(p["field_duration"] * NS)) or (self.t1 - self.t0)
-        return FieldSource(p["run_dir"], self.camera, duration_ns=duration, leave_out=p["leave_out"])
+        return FieldSource(self._run(), self.camera, duration_ns=duration, leave_out=p["leave_out"])
 
     def camera_pose(self, t_ns: int) -> np.ndarray:
         return self.track(t_ns) @ self.T_robot_cam

@@ -55,5 +55,5 @@ def FieldSource(run_dir, camera: PinholeCamera, *, duration_ns: int, leave_out: 
 
     if isinstance(duration_ns, bool) or not isinstance(duration_ns, (int, np.integer)) or duration_ns <= 0:
         raise InputError(f"{run_dir}: field_duration must be > 0 s (the span the field's time 0..1 covers)")
-    return TrainedRun.load(run_dir).renderer(camera, duration_ns=int(duration_ns),
-                                             leave_out=leave_out, chunk=chunk)
+    run = run_dir if isinstance(run_dir, TrainedRun) else TrainedRun.load(run_dir)
+    return run.renderer(camera, duration_ns=int(duration_ns), leave_out=leave_out, chunk=chunk)

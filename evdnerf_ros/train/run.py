@@ -32,6 +32,8 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..geometry.camera import PinholeCamera
+from ..geometry.poses import check_rigid
 from .checkpoint import CheckpointError, load_checkpoint
 from .config import TrainConfig
 from .rundir import CHECKPOINT_NAME
@@ -77,6 +79,8 @@ class TrainedRun:
         ts = extra.get("train_set") or {}
         self.time_range_ns = _time_range(ts.get("time_range_ns"), where)
         self.thresholds = self._thresholds(extra.get("thresholds"), ts.get("thresholds"))
+        self.train_camera = self._train_camera(ts.get("camera"), where)
+        self.ring = None if ts.get("ring") is None else check_rigid(ts["ring"], f"{where}: training ring")
         self._field = None
 
     # ------------------------------------------------------------------ loading
@@ -164,6 +168,30 @@ class TrainedRun:
         return th.values()
 
     # ------------------------------------------------------------------ use
+    def _train_camera(self, value, where):
+        if value is None:
+            return None
+        ok = isinstance(value, (list, tuple)) and len(value) == 6 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v > 0 for v in value[:4])
+        if not ok:
+            raise CheckpointError(f"{where}: training camera {value!r} is not [width, height, fx, fy, cx, cy]; "
+                                  f"damaged checkpoint; {RETRAIN}")
+        return PinholeCamera(int(value[0]), int(value[1]), *map(float, value[2:]))
+
+    def orbit(self, duration_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """Poses (t (M,) int64 ns from 0, T_world_cam (M, 4, 4)) going once round the training
+        views in azimuth order over ``duration_ns`` and back to the first: the trajectory a run
+        is published along when none is given. CheckpointError for runs that did not record it."""
+        if self.ring is None or len(self.ring) < 2:
+            raise CheckpointError(f"{self.checkpoint_path}: records no ring of static training views (trained "
+                                  "before they were recorded, or with fewer than 2); give a trajectory")
+        centre = self.ring[:, :3, 3].mean(axis=0)
+        d = self.ring[:, :3, 3] - centre
+        order = np.argsort(np.arctan2(d[:, 1], d[:, 0]))
+        T = self.ring[np.r_[order, order[:1]]]
+        t = np.linspace(0, int(duration_ns), len(T)).round().astype(np.int64)
+        return t, T
+
     def renderer(self, camera, *, duration_ns: int | None = None, t_origin_ns: int = 0,
                  leave_out: bool = True, chunk: int = 16384):
         """The field as a Renderer through ``camera``.  Scene time ``t_origin_ns`` ..
@@ -188,11 +216,20 @@ class TrainedRun:
 
 
 def train_set_record(train_set) -> dict:
-    """What a checkpoint records of its training set (``extra["train_set"]``)."""
+    """What a checkpoint records of its training set (``extra["train_set"]``): its time span,
+    thresholds and path, and its camera (size and intrinsics of the first training view) and the
+    static training views' poses, so that a run can be published without the set."""
     t0, t1 = train_set.time_range
     c_pos, c_neg = train_set.thresholds
-    return {"time_range_ns": [int(t0), int(t1)], "thresholds": [float(c_pos), float(c_neg)],
-            "path": str(getattr(train_set, "path", ""))}
+    record = {"time_range_ns": [int(t0), int(t1)], "thresholds": [float(c_pos), float(c_neg)],
+              "path": str(getattr(train_set, "path", ""))}
+    views = [v for v in train_set.train_views if train_set.poses(v) is None]
+    if views:
+        K = train_set.K(views[0])
+        record["camera"] = [int(train_set.width), int(train_set.height), float(K[0, 0]), float(K[1, 1]),
+                            float(K[0, 2]), float(K[1, 2])]
+        record["ring"] = [train_set.pose(v).tolist() for v in views]
+    return record
 
 
 def _pair(value, where, what) -> tuple[float, float]:
