@@ -54,6 +54,36 @@ if [ -n "$missing_fw" ]; then
   fi
 fi
 
+# Virtual USB cameras (rig/camera/virtual): umockdev serves emulated devices to the real
+# libusb; its Python API comes through GObject introspection (python3-gi, a Debian package),
+# made importable in the .venv by a .pth file pointing at a folder that holds only a symlink
+# to the system's gi (works for the venv's CPython 3.11; no build). Without them the camera
+# tests are skipped with the reason.
+USB_PACKAGES="umockdev gir1.2-umockdev-1.0 python3-gi libusb-1.0-0"
+missing_usb=""
+if command -v dpkg >/dev/null; then
+  for pkg in $USB_PACKAGES; do
+    dpkg -s "$pkg" >/dev/null 2>&1 || missing_usb="$missing_usb $pkg"
+  done
+fi
+if [ -n "$missing_usb" ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "quickstart: installing Debian packages for the virtual USB cameras:$missing_usb"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $missing_usb >/dev/null \
+      || echo "quickstart: could not install$missing_usb; the virtual camera tests will be skipped" >&2
+  else
+    echo "quickstart: the virtual camera tests are skipped until these Debian packages are installed:$missing_usb (run this script as root to install them)" >&2
+  fi
+fi
+if [ -d /usr/lib/python3/dist-packages/gi ] && ! .venv/bin/python -c "import gi" 2>/dev/null; then
+  site=$(.venv/bin/python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")
+  mkdir -p .venv/system-gi
+  ln -sfn /usr/lib/python3/dist-packages/gi .venv/system-gi/gi
+  echo "$PWD/.venv/system-gi" > "$site/system-gi.pth"
+  .venv/bin/python -c "import gi" 2>/dev/null \
+    || echo "quickstart: the system's python3-gi does not load in the .venv; the virtual camera tests will be skipped" >&2
+fi
+
 # Reinstall only when the package definition changed since the last set-up.
 stamp=.venv/.quickstart-stamp
 want=$(cat setup.py setup.cfg package.xml | sha256sum | cut -d' ' -f1)

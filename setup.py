@@ -35,11 +35,14 @@ setup(
         "numba==0.68.1",  # EVT 2.0 / 3.0 decode/encode hot loops compiled to C speed
         "pyserial>=3.5",  # the servo-rig firmware's serial link (rig.servo)
         "cyclonedds==11.0.1",  # ROS 2-compatible DDS transport; private raw-CDR API, see above
+        "pyusb>=1.2",  # camera drivers: finding devices, control transfers (rig.camera)
+        "libusb1>=3.1",  # python-libusb1: queued async bulk streaming (rig.camera.streaming)
     ],
     extras_require={
         "test": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "mcap>=1.1",
                  "mcap-ros2-support>=0.5", "expelliarmus==1.1.12",
-                 "evlib==0.13.2"],  # peer codec and peer simulator in tests/benchmarks
+                 "evlib==0.13.2",  # peer codec and peer simulator in tests/benchmarks
+                 "neuromorphic-drivers>=0.18,<0.19"],  # peer USB driver of the camera twins
     },
     entry_points={"console_scripts": ["evdnerf = evdnerf_ros.cli:main",
                                       "event_publisher = evdnerf_ros.nodes.event_publisher:main"],

@@ -32,6 +32,7 @@ import numpy as np
 from evdnerf_ros.errors import EvdnerfError, InputError
 from evdnerf_ros.limits import check_number
 from evdnerf_ros.geometry.servo_profile import RunProfile
+from rig.clock import ClockMap  # noqa: F401  (moved to rig.clock; re-exported here)
 
 PROTOCOL_VERSION = 1
 FIRMWARE_NAME = "rig_servo"
@@ -106,25 +107,6 @@ class Motion:
     @property
     def duration_us(self) -> int:
         return self.end.device_us - self.start.device_us
-
-
-@dataclass(frozen=True)
-class ClockMap:
-    """host_ns = offset_ns + scale * (device_us - device_ref_us); fitted from pings."""
-    offset_ns: float
-    scale: float                # host ns per device us (1000 for a perfect clock)
-    device_ref_us: int
-    residual_ns: float          # RMS residual of the fit
-    samples: int
-
-    @property
-    def drift_ppm(self) -> float:
-        return (self.scale / 1000.0 - 1.0) * 1e6
-
-    def to_host_ns(self, device_us) -> np.ndarray | int:
-        d = np.asarray(device_us, dtype=np.float64) - self.device_ref_us
-        out = np.rint(self.offset_ns + self.scale * d).astype(np.int64)
-        return int(out) if out.ndim == 0 else out
 
 
 @dataclass(frozen=True)
