@@ -1,4 +1,5 @@
-"""`evdnerf flash` and `evdnerf servo ...`: registered as an `evdnerf.commands` plugin.
+"""`evdnerf flash`, `evdnerf servo ...` and `evdnerf camera ...`: registered as an
+`evdnerf.commands` plugin.
 
 evdnerf_ros (the CLI's home) never imports rig; setup.py's entry point
 `evdnerf.commands: rig = rig.cli:register` makes the CLI find these commands.
@@ -6,8 +7,11 @@ evdnerf_ros (the CLI's home) never imports rig; setup.py's entry point
 
 from __future__ import annotations
 
-
 import json
+import sys
+
+#: Virtual twins `evdnerf camera ... --virtual MODEL` can host.
+TWINS = ("dvxplorer", "evk4")
 
 
 def _cmd_flash(args) -> int:
@@ -116,6 +120,112 @@ def _cmd_servo(args) -> int:
     return 0
 
 
+def _make_twin(model: str, scene: str, size: tuple[int, int]):
+    """The virtual twin of `model` streaming `scene`, rendered at `size` in the sensor's centre
+    (hosted by this process)."""
+    from .camera.virtual.scene_source import CenteredSource, GivenEvents, SceneEventSource
+
+    if model == "dvxplorer":
+        from .camera.dvxplorer import DVXplorer as driver
+        from .camera.virtual.dvxplorer import VirtualDVXplorer as twin
+    else:
+        from .camera.evk4 import EVK4 as driver
+        from .camera.virtual.evk4 import VirtualEVK4 as twin
+    # One period of the (repeating) scene is generated before the twin is plugged in, so serving
+    # transfers costs no rendering: generated on demand, a scene's renders compete with the
+    # register replies of the camera's start sequence. Its thresholds are then those of the
+    # default biases (a bias change reaches only a twin generating on demand).
+    if size[0] > driver.width or size[1] > driver.height:
+        from evdnerf_ros.errors import InputError
+
+        raise InputError(f"--scene-size {size[0]}x{size[1]} does not fit the {driver.width}x{driver.height} "
+                         "sensor; choose a smaller size")
+    src = SceneEventSource(scene, *size)
+    print(f"rendering {src.period_ns / 1e9:g} s of {scene} at {size[0]}x{size[1]} for the virtual camera ...",
+          file=sys.stderr)
+    events = src.events_until(src.period_ns - 1000)
+    looped = GivenEvents(events, *size, loop=True, period_ns=src.period_ns, source=f"scene {scene}")
+    return twin(CenteredSource(looped, driver.width, driver.height))
+
+
+def _camera_with_twin(args) -> int:
+    """Host the twin here and run the same command against it in a child process: the driver must
+    not share a process with the emulator (a driver holding the GIL in libusb would deadlock)."""
+    from .camera.errors import CameraError
+    from .camera.virtual.usb import VirtualUsbBus, spawn_child, umockdev_available
+
+    ok, why = umockdev_available()
+    if not ok:
+        raise CameraError(f"--virtual needs umockdev: {why}; run `bash quickstart.sh` as root to install it")
+    twin = _make_twin(args.virtual, args.scene, args.scene_size)
+    argv = [sys.executable, "-m", "evdnerf_ros", "camera", args.action]
+    if args.action in ("info", "record"):
+        argv += ["--serial", twin.serial]
+    if args.action == "record":
+        argv += ["-o", args.output, "--duration", str(args.duration), "--storage", args.storage]
+        if args.biases:
+            argv += ["--biases", args.biases]
+    with VirtualUsbBus() as bus:
+        bus.add(twin)
+        print(f"virtual {args.virtual} (serial {twin.serial}) streaming {args.scene}", file=sys.stderr)
+        proc = spawn_child(argv, bus, stdout=None, stderr=None)
+        try:
+            return proc.wait()
+        except KeyboardInterrupt:
+            proc.terminate()
+            return proc.wait()
+
+
+def _size(text: str) -> tuple[int, int]:
+    import argparse
+
+    w, sep, h = text.lower().partition("x")
+    if not (sep and w.isdigit() and h.isdigit() and 0 < int(w) <= 4096 and 0 < int(h) <= 4096):
+        raise argparse.ArgumentTypeError(f"expected WxH such as 128x96, got {text!r}")
+    return int(w), int(h)
+
+
+def _checked_camera(args) -> int:
+    from evdnerf_ros.errors import InputError
+
+    if args.action == "record" and not args.output:
+        raise InputError("camera record: give the bag to write with -o BAG")
+    if not 0 < args.duration <= 86400:
+        raise InputError(f"camera: --duration must be in (0, 86400] s, got {args.duration}")
+    if args.scene != "fork" and not args.virtual:
+        raise InputError("camera: --scene applies to --virtual twins only")
+    return _cmd_camera(args)
+
+
+def _cmd_camera(args) -> int:
+    if args.virtual:
+        return _camera_with_twin(args)
+    from .camera import list_cameras, open_camera
+
+    if args.action == "list":
+        cams = list_cameras()
+        for cam in cams:
+            print(cam)
+        if not cams:
+            print("no event camera found (DVXplorer, DAVIS, EVK4); for a virtual one: "
+                  "evdnerf camera list --virtual dvxplorer|evk4")
+        return 0
+    with open_camera(serial=args.serial) as cam:
+        if args.action == "info":
+            print(json.dumps({"model": cam.model, "serial": cam.serial, "firmware_version": cam.firmware_version,
+                              "logic_version": cam.logic_version, "width": cam.width, "height": cam.height,
+                              "encoding": cam.encoding, "biases": cam.biases, "roi": cam.roi}, indent=2))
+            return 0
+        if args.biases:
+            from .camera.biases import read_bias_file
+
+            cam.set_biases(read_bias_file(args.biases))
+        from .camera.record import record
+
+        record(cam, args.output, duration_s=args.duration, storage=args.storage)
+    return 0
+
+
 def register(subparsers) -> None:
     """Add `flash` and `servo` to the `evdnerf` command (entry point `evdnerf.commands`)."""
     from .flash import BOARDS
@@ -170,5 +280,21 @@ def register(subparsers) -> None:
                         "most 3 decimals, durations 1..65535 ms")
     p.set_defaults(func=_cmd_servo)
 
-
-
+    p = subparsers.add_parser("camera", help="event cameras over USB: list, info, record (real or virtual)",
+                              description="iniVation DVXplorer and Prophesee EVK4 over USB with the toolkit's "
+                                          "own drivers (rig.camera); --virtual MODEL runs the camera's twin, "
+                                          "which streams a simulated scene through emulated USB (umockdev).")
+    p.add_argument("action", choices=["list", "info", "record"])
+    p.add_argument("--serial", help="camera serial (default: the first camera found)")
+    p.add_argument("--virtual", choices=TWINS, help="use the virtual twin of this model instead of hardware")
+    p.add_argument("--scene", default="fork", help="with --virtual: scene preset or YAML it streams (default fork)")
+    p.add_argument("--scene-size", type=_size, default=(128, 96), metavar="WxH",
+                   help="with --virtual: the scene is rendered at this size in the sensor's centre, the rest of "
+                        "the pixel array quiet; a full 1280x720 render runs far below real time on a laptop "
+                        "CPU (default 128x96)")
+    p.add_argument("-o", "--output", help="record: rosbag2 to write (must not exist)")
+    p.add_argument("--duration", type=float, default=5.0,
+                   help="record: wall seconds to record, > 0 and <= 86400 (default 5)")
+    p.add_argument("--biases", help="record: bias file (`value %% name` lines, as Prophesee .bias files)")
+    p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="record: bag storage")
+    p.set_defaults(func=_checked_camera)

@@ -263,3 +263,33 @@ class SceneEventSource(EventSource):
         out, self._pending = p[:j], p[j:]
         self._handed = t_ns
         return out.astype(EVENT_DTYPE, copy=False)
+
+
+class CenteredSource(EventSource):
+    """``inner``'s events (a smaller sensor) placed at the centre of a ``width`` x ``height``
+    sensor: a twin streams a scene rendered at a size this machine renders in real time, the rest
+    of its pixel array quiet (``evdnerf camera ... --virtual MODEL --scene-size WxH``)."""
+
+    def __init__(self, inner: EventSource, width: int, height: int):
+        if inner.width > width or inner.height > height:
+            raise InputError(f"a {inner.width}x{inner.height} scene does not fit a {width}x{height} sensor; "
+                             "choose a smaller scene size")
+        self.inner = inner
+        self.width, self.height = int(width), int(height)
+        self.dx, self.dy = (self.width - inner.width) // 2, (self.height - inner.height) // 2
+
+    @property
+    def t_ns(self) -> int:
+        return self.inner.t_ns
+
+    def events_until(self, t_ns: int) -> np.ndarray:
+        ev = self.inner.events_until(t_ns)
+        ev["x"] += np.uint16(self.dx)
+        ev["y"] += np.uint16(self.dy)
+        return ev
+
+    def set_thresholds(self, c_pos: float, c_neg: float) -> None:
+        self.inner.set_thresholds(c_pos, c_neg)
+
+    def restart(self) -> None:
+        self.inner.restart()
