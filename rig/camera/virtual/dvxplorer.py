@@ -39,7 +39,7 @@ from evdnerf_ros.events.types import EVENT_DTYPE, TRIGGER_DTYPE
 
 from .. import dvxplorer as D
 from ..caer_words import (TRIGGER_EDGE, TRIGGER_PULSE, CaerWordEncoder, canonical_order)
-from .scene_source import GivenEvents
+from .scene_source import EmittedTruth, GivenEvents
 from .usb import STALL, EmulatedUsbDevice, EndpointSpec
 
 __all__ = ["VirtualDVXplorer", "thresholds_from_biases", "BASE_THRESHOLD"]
@@ -69,7 +69,7 @@ def _as_source(source, width, height):
                     "EventSource (rig.camera.virtual.scene_source)")
 
 
-class VirtualDVXplorer(EmulatedUsbDevice):
+class VirtualDVXplorer(EmulatedUsbDevice, EmittedTruth):
     """Emulated DVXplorer; see the module docstring. ``firmware=9, logic_patch=4`` is what
     neuromorphic-drivers accepts (libcaer: firmware 8, patch >= 2)."""
 
@@ -337,14 +337,6 @@ class VirtualDVXplorer(EmulatedUsbDevice):
             return 1000 * rise, 1000 * fall
 
     # --- truth --------------------------------------------------------------------------
-    def emitted_events(self) -> np.ndarray:
-        with self.lock:
-            return np.concatenate(self._emitted) if self._emitted else np.empty(0, EVENT_DTYPE)
-
-    def emitted_triggers(self) -> np.ndarray:
-        with self.lock:
-            return np.concatenate(self._emitted_tr) if self._emitted_tr else np.empty(0, TRIGGER_DTYPE)
-
     def writes_since(self, start: int = 0) -> list[tuple[int, int, int]]:
         with self.lock:
             return list(self.writes[start:])

@@ -42,6 +42,7 @@ from evdnerf_ros.events.codecs import make_encoder
 from evdnerf_ros.events.types import EVENT_DTYPE, TRIGGER_DTYPE
 
 from .. import evk4_registers as R
+from .scene_source import EmittedTruth
 from .usb import STALL, EmulatedUsbDevice, EndpointSpec
 
 __all__ = ["VirtualEVK4", "DEFAULT_FACTORY_BIASES", "thresholds_from_biases"]
@@ -86,7 +87,7 @@ def _as_source(source):
                     "EventSource (rig.camera.virtual.scene_source)")
 
 
-class VirtualEVK4(EmulatedUsbDevice):
+class VirtualEVK4(EmulatedUsbDevice, EmittedTruth):
     """Emulated EVK4; see the module docstring."""
 
     def __init__(self, source=None, *, serial: int = 0x000A1B2C, sensor_type: int = 0x31,
@@ -338,14 +339,6 @@ class VirtualEVK4(EmulatedUsbDevice):
             return 1000 * rise, 1000 * fall
 
     # --- truth --------------------------------------------------------------------------
-    def emitted_events(self) -> np.ndarray:
-        with self.lock:
-            return np.concatenate(self._emitted) if self._emitted else np.empty(0, EVENT_DTYPE)
-
-    def emitted_triggers(self) -> np.ndarray:
-        with self.lock:
-            return np.concatenate(self._emitted_tr) if self._emitted_tr else np.empty(0, TRIGGER_DTYPE)
-
     def register_writes(self, start: int = 0) -> list[tuple[int, int]]:
         with self.lock:
             return list(self.writes[start:])

@@ -293,3 +293,21 @@ class CenteredSource(EventSource):
 
     def restart(self) -> None:
         self.inner.restart()
+
+
+class EmittedTruth:
+    """What a twin has streamed, in order: its truth for tests and benchmarks. A twin appends to
+    ``_emitted`` / ``_emitted_tr`` under its ``lock`` as it encodes."""
+
+    _emitted: list
+    _emitted_tr: list
+
+    def emitted_events(self) -> np.ndarray:
+        with self.lock:
+            return np.concatenate(self._emitted) if self._emitted else empty_events()
+
+    def emitted_triggers(self) -> np.ndarray:
+        from evdnerf_ros.events.types import empty_triggers
+
+        with self.lock:
+            return np.concatenate(self._emitted_tr) if self._emitted_tr else empty_triggers()
