@@ -19,6 +19,8 @@ Two sources share one small interface (``width``, ``height``, ``t_ns``, ``events
 
 from __future__ import annotations
 
+import abc
+
 import numpy as np
 
 from evdnerf_ros.errors import InputError
@@ -28,27 +30,28 @@ from evdnerf_ros.events.types import EVENT_DTYPE, as_events, empty_events, valid
 DEFAULT_CHUNK_NS = 20_000_000
 
 
-class EventSource:
+class EventSource(abc.ABC):
     """Interface of a twin's event supply."""
 
     width: int
     height: int
 
     @property
+    @abc.abstractmethod
     def t_ns(self) -> int:
         """Sensor time up to which events have been handed out."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def events_until(self, t_ns: int) -> np.ndarray:
         """The events with time in (self.t_ns, t_ns] (sorted, EVENT_DTYPE); advances t_ns."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def set_thresholds(self, c_pos: float, c_neg: float) -> None:
-        raise NotImplementedError
+        """Contrast thresholds from now on (a twin maps its bias registers to them)."""
 
+    @abc.abstractmethod
     def restart(self) -> None:
         """Back to sensor time 0 (a twin's timestamp reset / new start)."""
-        raise NotImplementedError
 
 
 class GivenEvents(EventSource):
