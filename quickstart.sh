@@ -34,25 +34,31 @@ if [ ! -x .venv/bin/python ]; then
   fi
 fi
 
+# Optional Debian packages: installed when run as root, else the tests that need them are
+# skipped (with the reason). Checked with dpkg so an installed machine never runs apt.
+ensure_packages() {
+  what=$1; shift
+  missing=""
+  if command -v dpkg >/dev/null; then
+    for pkg in "$@"; do
+      dpkg -s "$pkg" >/dev/null 2>&1 || missing="$missing $pkg"
+    done
+  fi
+  [ -n "$missing" ] || return 0
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "quickstart: installing Debian packages for $what:$missing"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $missing >/dev/null \
+      || echo "quickstart: could not install$missing; the tests of $what will be skipped" >&2
+  else
+    echo "quickstart: the tests of $what are skipped until these Debian packages are installed:$missing (run this script as root to install them)" >&2
+  fi
+}
+
 # The servo-rig firmware (firmware/): avr-gcc + avr-libc build it, simavr + libsimavr-dev run it
 # in the virtual Arduino, avrdude flashes it, arduino-core-avr holds the bootloader the
-# flashing test runs.  Checked with dpkg so an installed machine never runs apt.
+# flashing test runs.
 FIRMWARE_PACKAGES="gcc-avr avr-libc avrdude simavr libsimavr-dev arduino-core-avr make"
-missing_fw=""
-if command -v dpkg >/dev/null; then
-  for pkg in $FIRMWARE_PACKAGES; do
-    dpkg -s "$pkg" >/dev/null 2>&1 || missing_fw="$missing_fw $pkg"
-  done
-fi
-if [ -n "$missing_fw" ]; then
-  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-    echo "quickstart: installing Debian packages for the firmware:$missing_fw"
-    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $missing_fw >/dev/null \
-      || echo "quickstart: could not install$missing_fw; the firmware tests will be skipped" >&2
-  else
-    echo "quickstart: the servo firmware's tests are skipped until these Debian packages are installed:$missing_fw (run this script as root to install them)" >&2
-  fi
-fi
+ensure_packages "the servo firmware" $FIRMWARE_PACKAGES
 
 # Virtual USB cameras (rig/camera/virtual): umockdev serves emulated devices to the real
 # libusb; its Python API comes through GObject introspection (python3-gi, a Debian package),
@@ -60,21 +66,7 @@ fi
 # to the system's gi (works for the venv's CPython 3.11; no build). Without them the camera
 # tests are skipped with the reason.
 USB_PACKAGES="umockdev gir1.2-umockdev-1.0 python3-gi libusb-1.0-0"
-missing_usb=""
-if command -v dpkg >/dev/null; then
-  for pkg in $USB_PACKAGES; do
-    dpkg -s "$pkg" >/dev/null 2>&1 || missing_usb="$missing_usb $pkg"
-  done
-fi
-if [ -n "$missing_usb" ]; then
-  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-    echo "quickstart: installing Debian packages for the virtual USB cameras:$missing_usb"
-    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $missing_usb >/dev/null \
-      || echo "quickstart: could not install$missing_usb; the virtual camera tests will be skipped" >&2
-  else
-    echo "quickstart: the virtual camera tests are skipped until these Debian packages are installed:$missing_usb (run this script as root to install them)" >&2
-  fi
-fi
+ensure_packages "the virtual USB cameras" $USB_PACKAGES
 if [ -d /usr/lib/python3/dist-packages/gi ] && ! .venv/bin/python -c "import gi" 2>/dev/null; then
   site=$(.venv/bin/python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")
   mkdir -p .venv/system-gi

@@ -67,13 +67,17 @@ def read_all(cam, idle_s=1.0, limit_s=60.0):
 """
 
 
+def child_result(returncode: int, stdout: str, stderr: str) -> dict:
+    """The JSON a driver child printed on its last `RESULT ` line (it must have exited 0)."""
+    lines = [ln for ln in stdout.splitlines() if ln.startswith("RESULT ")]
+    assert returncode == 0 and lines, f"driver child failed (exit {returncode})\n{stdout}\n{stderr}"
+    return json.loads(lines[-1][len("RESULT "):])
+
+
 def run_driver(bus, body: str, timeout: float = 120.0) -> dict:
     from rig.camera.virtual.usb import run_child
     res = run_child(PRELUDE + textwrap.dedent(body), bus, timeout=timeout)
-    lines = [ln for ln in res.stdout.splitlines() if ln.startswith("RESULT ")]
-    assert res.returncode == 0 and lines, f"driver child failed (exit {res.returncode})\n" \
-                                          f"{res.stdout}\n{res.stderr}"
-    return json.loads(lines[-1][len("RESULT "):])
+    return child_result(res.returncode, res.stdout, res.stderr)
 
 
 def random_events(n, t_end_us, seed=0, t_start_us=0):
@@ -211,9 +215,7 @@ def test_trigger_edges(make_twin):
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
-    lines = [ln for ln in out_s.splitlines() if ln.startswith("RESULT ")]
-    assert proc.returncode == 0 and lines, err_s
-    out = json.loads(lines[-1][7:])
+    out = child_result(proc.returncode, out_s, err_s)
     want_t = [t for p in pulses for t in p]
     assert out["t"] == want_t
     assert out["value"] == [1, 0, 1, 0, 1, 0] and out["id"] == [0] * 6
@@ -390,9 +392,7 @@ def test_unplug_mid_stream_keeps_what_arrived(make_twin, tmp_path):
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
-    lines = [ln for ln in out_s.splitlines() if ln.startswith("RESULT ")]
-    assert proc.returncode == 0 and lines, err_s
-    out = json.loads(lines[-1][7:])
+    out = child_result(proc.returncode, out_s, err_s)
     assert out["msg"] and "unplugged" in out["msg"]
     got = np.load(tmp_path / "unplug.npy")
     emitted = twin.emitted_events()
@@ -436,9 +436,7 @@ def test_peer_neuromorphic_drivers_decodes_the_twin_exactly(make_twin, tmp_path)
     """)
     from rig.camera.virtual.usb import run_child
     res = run_child(code, bus, timeout=150)
-    lines = [ln for ln in res.stdout.splitlines() if ln.startswith("RESULT ")]
-    assert res.returncode == 0 and lines, res.stdout + res.stderr
-    out = json.loads(lines[-1][7:])
+    out = child_result(res.returncode, res.stdout, res.stderr)
     assert out["serial"] == "000A1B2C"
     peer = np.load(tmp_path / "peer.npy")
     emitted = twin.emitted_events()
