@@ -383,3 +383,35 @@ def test_background_writer_hands_errors_back():
         sink.close()
     sink.close(raise_error=False)
     assert vw.got == [1]
+
+
+def test_background_writer_stops_before_an_interrupt_leaves_close():
+    """Ctrl-C / SIGTERM while close waits: the writer must be out of the file before the caller
+    goes on to close it (an HDF5 file closed under a writing thread crashes the interpreter)."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from evdnerf_ros.session.convert import _BackgroundAppender
+
+    class Slow:
+        def __init__(self):
+            self.writing = False
+            self.done = 0
+
+        def append(self, ev):
+            self.writing = True
+            time.sleep(0.3)
+            self.done += 1
+            self.writing = False
+
+    vw = Slow()
+    sink = _BackgroundAppender(vw)
+    for k in range(2):
+        sink.append(k)
+    threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGINT)).start()
+    with pytest.raises(KeyboardInterrupt):
+        sink.close()
+    assert sink.stopped.is_set() and not vw.writing
+    assert vw.done < 3                 # what was still queued was dropped, not written

@@ -660,7 +660,8 @@ class _BackgroundAppender:
     """Appends batches to a training-set view in a second thread: HDF5 compresses and writes
     with the GIL released, so writing overlaps decoding (two cores). At most `depth` batches
     wait in the queue (bounded memory); an error in the writer is raised in the caller at
-    the next append or at close."""
+    the next append or at close. Whatever interrupts the caller (Ctrl-C, SIGTERM), the
+    writer has stopped before close returns or raises: the file is never closed under it."""
 
     def __init__(self, view_writer, depth: int = 2):
         import queue
@@ -668,20 +669,27 @@ class _BackgroundAppender:
 
         self.vw = view_writer
         self.exc: BaseException | None = None
+        self.cancelled = threading.Event()
+        # set by the writer as it leaves; Thread.join/is_alive cannot be trusted once a join
+        # was interrupted (CPython < 3.13 may then report a running thread as stopped)
+        self.stopped = threading.Event()
         self.q = queue.Queue(maxsize=depth)
         self.thread = threading.Thread(target=self._run, name="convert-writer", daemon=True)
         self.thread.start()
 
     def _run(self):
-        while True:
-            item = self.q.get()
-            if item is None:
-                return
-            if self.exc is None:
-                try:
-                    self.vw.append(item)
-                except BaseException as exc:  # noqa: BLE001 - handed to the caller
-                    self.exc = exc
+        try:
+            while not self.cancelled.is_set():
+                item = self.q.get()
+                if item is None:
+                    return
+                if self.exc is None and not self.cancelled.is_set():
+                    try:
+                        self.vw.append(item)
+                    except BaseException as exc:  # noqa: BLE001 - handed to the caller
+                        self.exc = exc
+        finally:
+            self.stopped.set()
 
     def append(self, events) -> None:
         if self.exc is not None:
@@ -689,10 +697,33 @@ class _BackgroundAppender:
         self.q.put(events)
 
     def close(self, *, raise_error: bool = True) -> None:
-        self.q.put(None)
-        self.thread.join()
-        if raise_error and self.exc is not None:
+        """Write what is queued and stop the writer; on an error or interrupt, drop it instead."""
+        if not raise_error:
+            self._stop_now()
+            return
+        try:
+            self.q.put(None)
+            self.stopped.wait()
+        except BaseException:
+            self._stop_now()
+            raise
+        if self.exc is not None:
             raise self.exc
+
+    def _stop_now(self) -> None:
+        """Cancel and wait for the writer to leave HDF5, even through further interrupts."""
+        import queue
+
+        self.cancelled.set()
+        while not self.stopped.is_set():
+            try:
+                self.q.put_nowait(None)            # wakes a writer waiting for work
+            except queue.Full:
+                pass
+            try:
+                self.stopped.wait(0.05)
+            except BaseException:  # noqa: BLE001 - a second Ctrl-C must not leave it writing
+                continue
 
 
 # =========================================================================== entry points
