@@ -11,7 +11,7 @@ import json
 import sys
 
 #: Virtual twins `evdnerf camera ... --virtual MODEL` can host.
-TWINS = ("dvxplorer", "evk4")
+TWINS = ("dvxplorer", "davis346", "evk4")
 
 
 def _cmd_flash(args) -> int:
@@ -128,6 +128,9 @@ def _make_twin(model: str, scene: str, size: tuple[int, int]):
     if model == "dvxplorer":
         from .camera.dvxplorer import DVXplorer as driver
         from .camera.virtual.dvxplorer import VirtualDVXplorer as twin
+    elif model == "davis346":
+        from .camera.davis346 import DAVIS346 as driver
+        from .camera.virtual.davis346 import VirtualDAVIS346 as twin
     else:
         from .camera.evk4 import EVK4 as driver
         from .camera.virtual.evk4 import VirtualEVK4 as twin
@@ -208,7 +211,7 @@ def _cmd_camera(args) -> int:
             print(cam)
         if not cams:
             print("no event camera found (DVXplorer, DAVIS, EVK4); for a virtual one: "
-                  "evdnerf camera list --virtual dvxplorer|evk4")
+                  "evdnerf camera list --virtual dvxplorer|davis346|evk4")
         return 0
     with open_camera(serial=args.serial) as cam:
         if args.action == "info":

@@ -28,7 +28,7 @@ from .errors import (UDEV_RULES, CameraDisconnected, CameraError, CameraNotFound
 #: (vid, pid) -> (model, "module:Class" or None when no driver exists yet)
 KNOWN_CAMERAS: dict[tuple[int, int], tuple[str, str | None]] = {
     (0x152A, 0x8419): ("DVXplorer", "rig.camera.dvxplorer:DVXplorer"),
-    (0x152A, 0x841A): ("DAVIS FX3", None),
+    (0x152A, 0x841A): ("DAVIS346", "rig.camera.davis346:DAVIS346"),
     (0x152A, 0x841B): ("DAVIS FX2", None),
     (0x04B4, 0x00F4): ("EVK4", "rig.camera.evk4:EVK4"),
     (0x04B4, 0x00F5): ("EVK4", "rig.camera.evk4:EVK4"),
