@@ -18,6 +18,7 @@ timestamped pings and fits ``host_ns = offset_ns + scale * device_us`` by least 
 
 from __future__ import annotations
 
+import errno
 import itertools
 import math
 import os
@@ -357,9 +358,20 @@ class ServoClient:
 
     def _read_loop(self) -> None:
         buf = b""
+        count_waiting = True
         while not self._stop.is_set():
             try:
-                chunk = self._ser.read(self._ser.in_waiting or 1)   # returns at the first byte
+                want = 1
+                if count_waiting:
+                    try:
+                        want = self._ser.in_waiting or 1
+                    except OSError as exc:
+                        # a port that cannot count its input (a pty under an ioctl
+                        # interposer such as umockdev's): read byte by byte instead
+                        if exc.errno != errno.ENOTTY:
+                            raise
+                        count_waiting = False
+                chunk = self._ser.read(want)                        # returns at the first byte
             except Exception as exc:
                 self._reader_error = exc
                 break

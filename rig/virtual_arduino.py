@@ -36,8 +36,9 @@ ATMEGABOOT_HEX = Path("/usr/share/arduino/hardware/arduino/avr/bootloaders/atmeg
                       "ATmegaBOOT_168_atmega328.hex")
 
 PIN_TRIGGER, PIN_SERVO, PIN_TURNTABLE = "D8", "D9", "D10"
-#: pin-log dtype: simulated time in ns since power-up (int64), pin name, level
-PIN_DTYPE = np.dtype([("t_ns", "<i8"), ("pin", "U3"), ("level", "u1")])
+#: pin-log dtype: simulated time in ns since power-up (int64), pin name, level, and the host's
+#: time.monotonic_ns() when the harness simulated the edge (its place in physical time)
+PIN_DTYPE = np.dtype([("t_ns", "<i8"), ("pin", "U3"), ("level", "u1"), ("host_ns", "<i8")])
 
 
 class FirmwareToolsMissing(EvdnerfError):
@@ -148,14 +149,19 @@ def build(force: bool = False) -> Path:
 
 def read_pin_log(path) -> np.ndarray:
     """Parse a harness log into PIN_DTYPE records (RESET lines are skipped)."""
+    return parse_pin_lines(Path(path).read_text().splitlines())
+
+
+def parse_pin_lines(lines) -> np.ndarray:
+    """PIN_DTYPE records of complete harness log lines (RESET lines are skipped)."""
     rows = []
-    for line in Path(path).read_text().splitlines():
+    for line in lines:
         parts = line.split()
-        if len(parts) != 3:
+        if len(parts) != 4:
             continue
         whole, _, frac = parts[0].partition(".")
         t_ns = int(whole) * 1000 + (int(frac.ljust(4, "0")[:4]) // 10 if frac else 0)
-        rows.append((t_ns, parts[1], int(parts[2])))
+        rows.append((t_ns, parts[1], int(parts[2]), int(parts[3])))
     return np.array(rows, dtype=PIN_DTYPE)
 
 

@@ -5,7 +5,8 @@
  *
  * Prints "PTY <path>" on stdout once the UART is reachable (pyserial can open it at any baud),
  * and logs every edge of D8 (PB0, trigger), D9 (PB1, scene servo) and D10 (PB2, turntable) to
- * the log file as "<simulated time in us, 4 decimals> <pin> <0|1>", plus "<t> RESET" lines.
+ * the log file as "<simulated time in us, 4 decimals> <pin> <0|1> <host CLOCK_MONOTONIC ns>",
+ * plus "<t> RESET" lines.
  * --pace keeps simulated time at or behind the wall clock (needed by avrdude's bootloader
  * timeouts); without it the chip runs as fast as the host allows.  --eeprom loads the EEPROM
  * from FILE at start (if it exists) and writes it back on SIGTERM / SIGINT / SIGHUP, or when
@@ -60,11 +61,16 @@ static void log_time(void)
 
 static void pin_changed(avr_irq_t *irq, uint32_t value, void *param)
 {
+    struct timespec now;
     (void)irq;
     if (!logf)
         return;
+    /* the host's CLOCK_MONOTONIC when the edge was simulated: where the closed-loop virtual
+     * rig places it in physical time (the chip may run slower than real time under load) */
+    clock_gettime(CLOCK_MONOTONIC, &now);
     log_time();
-    fprintf(logf, " %s %u\n", (const char *)param, value ? 1u : 0u);
+    fprintf(logf, " %s %u %lld\n", (const char *)param, value ? 1u : 0u,
+            (long long)now.tv_sec * 1000000000LL + now.tv_nsec);
 }
 
 /* The UART bridge.  simavr 1.6's uart_pty part stalls for good when more than 511 bytes
