@@ -1,4 +1,4 @@
-"""`evdnerf sync`, `convert`, `import-evdnerf`: from a session to a training set."""
+"""`evdnerf sync`, `convert`, `import-evdnerf`, `import-bags`: from a session to a training set."""
 
 from __future__ import annotations
 
@@ -43,6 +43,17 @@ def _cmd_import_evdnerf(args) -> int:
 
     run_import_evdnerf(args.source, args.output, c_pos=args.c_pos, c_neg=args.c_neg,
                        overwrite=args.overwrite)
+    return 0
+
+
+def _cmd_import_bags(args) -> int:
+    from ..session.importer import ImportOptions, import_bags
+
+    options = options_from_args(ImportOptions, args)
+    result = import_bags(args.bags, args.output, options, overwrite=args.overwrite, log=print)
+    rate = result.events / result.seconds / 1e6 if result.seconds > 0 else 0.0
+    print(f"{result.root}: {len(result.views)} view(s), {result.events} events from {len(result.inputs)} bag(s) "
+          f"in {result.seconds:.2f} s ({rate:.1f} Mev/s); next: evdnerf sync {result.root}")
     return 0
 
 
@@ -93,3 +104,20 @@ def register(sub) -> None:
                    help="C- if the dataset does not say, in (0, 10]")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_import_evdnerf)
+
+    p = sub.add_parser("import-bags", help="a session from bags recorded without this toolkit",
+                       description="Build a capture session from bags recorded by metavision_driver, "
+                                   "libcaer_driver or `ros2 bag record` of dvs_msgs/EventArray (rosbag2 "
+                                   "folders, .mcap, .db3, ROS 1 .bag): one bag per view, or one bag cut into "
+                                   "views at its trigger edges or servo START messages (--split-at). "
+                                   "EventPacket topics of whole bags are passed through byte for byte; split "
+                                   "views and dvs_msgs arrays are re-encoded (times unchanged). Intrinsics from "
+                                   "--calibration, the bags' CameraInfo or --fov; poses from --poses or --ring. "
+                                   "Then: evdnerf sync SESSION; evdnerf convert SESSION -o TRAIN.h5.")
+    p.add_argument("bags", nargs="+", metavar="BAG", help="input bags, one per view (in view order)")
+    p.add_argument("-o", "--output", required=True, help="session folder to write")
+    from ..session.importer import ImportOptions
+
+    add_options(p, ImportOptions)
+    p.add_argument("--overwrite", action="store_true", help="replace a session folder this toolkit wrote")
+    p.set_defaults(func=_cmd_import_bags)
