@@ -29,6 +29,7 @@ import collections
 import errno as _errno
 import threading
 import time
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,6 +42,10 @@ from .errors import (CameraDisconnected, CameraError, CameraNotFound, CameraPerm
 
 #: (sensor_us, host_ns) samples kept for the clock fit (a sliding window).
 CLOCK_SAMPLES = 4096
+
+#: python-libusb1 objects of links closed with abandoned transfers (a gone device never returned
+#: them): kept referenced for the life of the process, so nothing frees memory libusb was given.
+_ABANDONED: list = []
 
 
 @dataclass(frozen=True)
@@ -132,6 +137,7 @@ class UsbLink:
         self.pid = device.getProductID()
         self.bcd_device = device.getbcdDevice()
         self._closed = False
+        self._abandoned: list = []      # streams that gave up on transfers (see abandon())
 
     @classmethod
     def open(cls, ids, serial: str | None = None, *, interface: int = 0,
@@ -226,10 +232,18 @@ class UsbLink:
             return translate_usb_error(exc, f"{self.name}: {what}")
         return exc
 
+    def abandon(self, stream) -> None:
+        """``stream`` (a closed BulkStream) gave up on transfers that a gone device never
+        returned: close() must then release the handle without waiting for them."""
+        self._abandoned.append(stream)
+
     def close(self) -> None:
         if self._closed:
             return
         self._closed = True
+        if self._abandoned:
+            self._close_abandoned()
+            return
         try:
             try:
                 self.handle.releaseInterface(self.interface)
@@ -238,6 +252,52 @@ class UsbLink:
             self.handle.close()
         finally:
             self.context.close()
+
+    def _close_abandoned(self) -> None:
+        """Close a handle whose transfers libusb will never complete, without waiting.
+
+        python-libusb1's ``USBDeviceHandle.close()`` (and each transfer's finalizer, also at
+        interpreter exit) loops on ``handleEvents()`` until every transfer completes: forever
+        here.  So its finalizers are detached and ``libusb_close()`` is called directly: libusb
+        then drops the handle's transfers from its in-flight list (they never call back) and
+        closes the device node.  The transfer objects (and their buffers) stay referenced in
+        ``_ABANDONED``; then the context is closed as usual.  If the event thread of a stream
+        is still running, or python-libusb1 is not shaped as expected, nothing is freed: the
+        objects are parked and their finalizers detached (a bounded leak, never a hang)."""
+        handle, ctx = self.handle, self.context
+        _ABANDONED.append((ctx, handle, self.device, tuple(self._abandoned)))
+        try:
+            handle.releaseInterface(self.interface)
+        except Exception:
+            pass
+        for f in list(getattr(handle, "_finalizer_dict", {}).values()):    # the transfers'
+            if isinstance(f, weakref.finalize):
+                f.detach()
+        fin = getattr(handle, "close", None)
+        peeked = fin.peek() if isinstance(fin, weakref.finalize) else None   # (obj, func, args, kw)
+        kw = getattr(peeked[1], "keywords", None) if peeked else None
+        kw = kw if isinstance(kw, dict) else {}
+        inner = kw.get("kw") or {}
+        threads_done = not any(getattr(s, "running", False) for s in self._abandoned)
+        if (isinstance(fin, weakref.finalize) and callable(inner.get("libusb_close"))
+                and inner.get("handle") is not None and threads_done):
+            fin.detach()
+            try:
+                kw["pop"](kw["handle"])          # the context's finalizer must not close it again
+            except (KeyError, TypeError):
+                pass
+            inner["libusb_close"](inner["handle"])
+            dev = inner.get("device")
+            if dev is not None:
+                try:
+                    dev.close()
+                except Exception:
+                    pass
+            self.context.close()
+            return
+        for obj in (fin, getattr(ctx, "_USBContext__close", None)):   # park everything
+            if isinstance(obj, weakref.finalize):
+                obj.detach()
 
 
 class Device(abc.ABC):
@@ -363,7 +423,7 @@ class Device(abc.ABC):
             self._start_hardware()
         except BaseException:
             stream, self._stream = self._stream, None
-            stream.close()
+            self._close_stream(stream)
             raise
 
     def stop(self) -> None:
@@ -375,7 +435,14 @@ class Device(abc.ABC):
         try:
             self._stop_hardware()
         finally:
+            self._close_stream(stream)
+
+    def _close_stream(self, stream) -> None:
+        try:
             stream.close()
+        finally:
+            if getattr(stream, "abandoned", 0) and self.link is not None:
+                self.link.abandon(stream)        # a gone device kept transfers: don't wait on close
 
     # byte and event streams -----------------------------------------------------------
     def read_raw(self, timeout_s: float = 1.0) -> RawChunk | None:

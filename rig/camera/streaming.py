@@ -11,6 +11,18 @@ the queue is full, the chunk is dropped and counted (``stats.dropped_chunks`` /
 An unplug (LIBUSB_TRANSFER_NO_DEVICE, or a transfer error) stops the resubmission; the
 consumer's ``get()`` still returns every chunk received before it, then raises
 ``CameraDisconnected``.  A stalled endpoint ends the stream with ``CameraProtocolError``.
+
+``close()`` never waits long for a device that is gone: libusb completes a transfer only when
+it reaps it (or learns of the unplug from a poll error), and a gone device's transfers may
+never be reaped (an emulated device node is a regular file, which never reports POLLERR; a
+wedged host controller neither).  python-libusb1 would then wait for them forever (its handle
+and transfer finalizers loop on ``handleEvents()`` while a transfer is in flight).  So once the
+device is known gone (the stream failed with ``CameraDisconnected``, or cancelling a transfer
+said "no device") the transfers get ``GONE_GRACE_S`` to be reaped; those still in flight are
+*abandoned*: the event thread stops, ``abandoned`` counts them, and ``UsbLink.close()``
+releases the handle without waiting for them (``rig.camera.device.UsbLink.abandon``).  The
+event thread signals its exit with an Event (not ``Thread.join``: before CPython 3.13 a join
+interrupted by Ctrl-C can report a still-running thread as stopped).
 """
 
 from __future__ import annotations
@@ -27,6 +39,8 @@ log = logging.getLogger("rig.camera")
 
 #: seconds between two "consumer too slow" warnings
 WARN_INTERVAL_S = 1.0
+#: seconds a gone device's cancelled transfers get to be reaped before they are abandoned
+GONE_GRACE_S = 0.25
 
 
 class BulkStream:
@@ -47,6 +61,10 @@ class BulkStream:
         self.queue: queue.Queue = queue.Queue(maxsize=int(queue_chunks))
         self._event_timeout = float(event_timeout_s)
         self._stopping = False
+        self._abandon = False           # set by close(): the event thread exits even with transfers in flight
+        self._gone = False              # a cancel said "no device"
+        self.abandoned = 0              # transfers still in flight when close() gave up on them
+        self._exited = threading.Event()     # set by the event thread as it exits
         self._failure: CameraError | None = None
         self._failure_seen = threading.Event()
         self._seq = 0
@@ -85,10 +103,17 @@ class BulkStream:
 
     # libusb event thread ----------------------------------------------------------------
     def _events(self) -> None:
+        try:
+            self._event_loop()
+        finally:
+            self._exited.set()
+
+    def _event_loop(self) -> None:
         ctx = self.context
         while True:
             with self._lock:
-                if (self._stopping or self._failure is not None) and self._inflight == 0:
+                if self._abandon or ((self._stopping or self._failure is not None)
+                                     and self._inflight == 0):
                     return
             try:
                 ctx.handleEventsTimeout(self._event_timeout)
@@ -100,6 +125,7 @@ class BulkStream:
                                               chunks=self.stats.transfers,
                                               nbytes=self.stats.bytes))
                 with self._lock:
+                    self.abandoned = self._inflight     # libusb may still hold them
                     self._inflight = 0
                 return
 
@@ -182,10 +208,13 @@ class BulkStream:
             self._failure_seen.set()
 
     def _cancel_all(self) -> None:
+        no_device = self._usb1.USBErrorNoDevice
         for t in self._transfers:
             try:
                 if t.isSubmitted():
                     t.cancel()
+            except no_device:
+                self._gone = True
             except Exception:
                 pass
 
@@ -216,16 +245,49 @@ class BulkStream:
             except queue.Empty:
                 continue
 
+    @property
+    def device_gone(self) -> bool:
+        """True once the stream ended by a disconnect or a cancel found no device."""
+        return self._gone or isinstance(self._failure, CameraDisconnected)
+
+    @property
+    def running(self) -> bool:
+        """The libusb event thread has not exited yet."""
+        return not self._exited.is_set()
+
     def close(self, timeout_s: float = 2.0) -> None:
-        """Cancel the transfers, wait until libusb has reaped them all, stop the thread."""
-        if self._stopping and not self._thread.is_alive():
+        """Cancel the transfers, wait until libusb has reaped them all, stop the thread.
+
+        A live device's transfers get ``timeout_s``; a gone device's ``GONE_GRACE_S``, then
+        the ones still in flight are abandoned (counted in ``abandoned``; see the module
+        docstring).  Safe to call again after an interruption (Ctrl-C): the thread's exit is
+        an Event, not ``Thread.join``."""
+        if self._exited.is_set():
+            self._stopping = True
+            return
+        if self._abandon:                       # an interrupted close(): just let the thread go
+            self._exited.wait(max(0.2, 4 * self._event_timeout))
             return
         self._stopping = True
         self._cancel_all()
-        self._thread.join(timeout_s)
-        if self._thread.is_alive():
-            log.warning("%s: %d bulk transfers still in flight after %.1f s", self.name,
-                        self._inflight, timeout_s)
+        t0 = time.monotonic()
+        try:
+            while not self._exited.wait(0.01):
+                waited = time.monotonic() - t0
+                if waited >= timeout_s or (self.device_gone and waited >= GONE_GRACE_S):
+                    break
+        finally:
+            if not self._exited.is_set():
+                with self._lock:
+                    left = self._inflight
+                self.abandoned = max(left, 1)
+                self._abandon = True            # the thread leaves after its current poll
+        if not self.abandoned:
+            return
+        self._exited.wait(max(0.2, 4 * self._event_timeout))
+        log.warning("%s: %d bulk transfers of a %s device not reaped %.2f s after cancelling; "
+                    "abandoned (their handle is released without waiting)", self.name, self.abandoned,
+                    "gone" if self.device_gone else "silent", time.monotonic() - t0)
 
     def __enter__(self) -> "BulkStream":
         return self

@@ -260,10 +260,13 @@ class EmulatedUsbDevice:
         ready yet (the host will ask again), or STALL."""
         return None
 
-    def unplug(self) -> None:
+    def unplug(self, *, reap_inflight: bool = True) -> None:
         """Simulate pulling the cable: every later ioctl of the host fails with ENODEV and
-        its transfers end with LIBUSB_TRANSFER_NO_DEVICE."""
+        its transfers end with LIBUSB_TRANSFER_NO_DEVICE.  ``reap_inflight=False``: the URBs
+        in flight are never given back (a host that never reports them; libusb then never
+        completes those transfers — what a driver's close() must survive)."""
         with self.lock:
+            self.reap_inflight = bool(reap_inflight)
             self.unplugged = True
 
 
@@ -412,7 +415,7 @@ class VirtualUsbBus:
         with self._lock:
             st = self._state(device, client)
         if device.unplugged:
-            return self._unplugged(client, req, st)
+            return self._unplugged(client, req, st, device)
         if req in (USBDEVFS_REAPURBNDELAY, USBDEVFS_REAPURB):
             return self._reap(client, device, st)
         if req == USBDEVFS_SUBMITURB:
@@ -479,7 +482,7 @@ class VirtualUsbBus:
         client.complete(0, 0)
         return True
 
-    def _unplugged(self, client, req, st: _ClientState) -> bool:
+    def _unplugged(self, client, req, st: _ClientState, device=None) -> bool:
         """After an unplug: URBs already submitted are still reapable (capability "reap
         after disconnect"), waiting IN URBs ending with -ESHUTDOWN as the kernel does
         (libusb reports LIBUSB_TRANSFER_NO_DEVICE); every other ioctl, and a reap with
@@ -490,7 +493,7 @@ class VirtualUsbBus:
             return True
         with self._lock:
             item = st.done.popleft() if st.done else None
-            if item is None:
+            if item is None and getattr(device, "reap_inflight", True):
                 for q in st.pending.values():
                     if q:
                         item = (q.popleft(), -errno.ESHUTDOWN, 0)
@@ -539,7 +542,7 @@ class VirtualUsbBus:
         if item is None and self.eagain_delay_s > 0:
             time.sleep(self.eagain_delay_s)       # pitfall 4: don't let libusb spin
             if device.unplugged:
-                return self._unplugged(client, USBDEVFS_REAPURBNDELAY, st)
+                return self._unplugged(client, USBDEVFS_REAPURBNDELAY, st, device)
             item = self._next_reapable(device, st)
         if item is None:
             client.complete(-1, errno.EAGAIN)
