@@ -37,6 +37,7 @@ setup(
         "cyclonedds==11.0.1",  # ROS 2-compatible DDS transport; private raw-CDR API, see above
         "pyusb>=1.2",  # camera drivers: finding devices, control transfers (rig.camera)
         "libusb1>=3.1",  # python-libusb1: queued async bulk streaming (rig.camera.streaming)
+        "opencv-contrib-python-headless>=4.8",  # aruco/ChArUco detection and calibration (evdnerf_ros.calib)
     ],
     extras_require={
         "test": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "mcap>=1.1",

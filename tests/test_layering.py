@@ -15,7 +15,7 @@ RANK = {
     "yamlcheck": 4,
     "options": 5,
     "ros": 6, "field": 6, "session": 6,
-    "sim": 7, "train": 7,
+    "sim": 7, "train": 7, "calib": 7,
     "eval": 8,
     "nodes": 9, "demo": 9,
     "cli": 10, "__main__": 11,

@@ -15,12 +15,12 @@ import warnings
 
 from .. import __version__
 from ..errors import EvdnerfError
-from . import events, ros, session, simulate, train
+from . import calibrate, events, ros, session, simulate, train
 from .common import Terminated, _fail, _on_sigterm, _Parser, _show_warning, geometry, number, os_error_message
 
 __all__ = ["main", "build_parser", "number", "geometry", "Terminated", "os_error_message"]
 
-GROUPS = (simulate, events, session, train, ros)
+GROUPS = (simulate, events, session, train, ros, calibrate)
 
 
 def build_parser() -> _Parser:

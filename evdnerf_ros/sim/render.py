@@ -20,7 +20,8 @@ Per frame:
    max(0, n . -L_l) * visible_l)``, hard shadows by casting one ray per lit point and
    light (bounding-sphere prefilter, convex primitives skip themselves).  Textures are
    evaluated in object coordinates (a point pulled 1 um inside the surface, so box faces
-   on a checker boundary do not speckle); noise is a seeded integer hash (no RNG).
+   on a checker boundary do not speckle); noise is a seeded integer hash (no RNG); an image
+   texture is sampled bilinearly on the object's local xy plane (``image_grey``).
 5. Background ``intensity * (1 + contrast * pattern(ray direction / scale))``.
 6. The s x s samples are averaged in linear intensity.
 
@@ -102,8 +103,32 @@ def value_noise(p: np.ndarray, seed: int = 0) -> np.ndarray:
     return out
 
 
+def image_grey(tex: Texture, p: np.ndarray) -> np.ndarray:
+    """Grey level in [0, 1] of an image texture at object points p (N, 3): the picture spans
+    x in [-w/2, w/2] (columns) and y in [h/2, -h/2] (rows, top row at +y); bilinear between
+    texel centres, edge texels held up to the picture's border, 0.5 outside it."""
+    img = tex.image
+    rows, cols = img.shape
+    w, h = tex.size
+    u = (p[:, 0] / w + 0.5) * cols - 0.5
+    v = (0.5 - p[:, 1] / h) * rows - 0.5
+    inside = (np.abs(p[:, 0]) <= 0.5 * w) & (np.abs(p[:, 1]) <= 0.5 * h)
+    u = np.clip(u, 0.0, cols - 1.0)
+    v = np.clip(v, 0.0, rows - 1.0)
+    u0 = np.minimum(np.floor(u).astype(np.int64), cols - 2) if cols > 1 else np.zeros(u.shape, np.int64)
+    v0 = np.minimum(np.floor(v).astype(np.int64), rows - 2) if rows > 1 else np.zeros(v.shape, np.int64)
+    fu, fv = u - u0, v - v0
+    u1 = np.minimum(u0 + 1, cols - 1)
+    v1 = np.minimum(v0 + 1, rows - 1)
+    g = ((1 - fv) * ((1 - fu) * img[v0, u0] + fu * img[v0, u1])
+         + fv * ((1 - fu) * img[v1, u0] + fu * img[v1, u1]))
+    return np.where(inside, g, 0.5)
+
+
 def texture_pattern(tex: Texture, p: np.ndarray) -> np.ndarray:
     """Pattern in [-1, 1] of a texture at points p (N, 3) (object coordinates / scale)."""
+    if tex.kind == "image":
+        return 2.0 * image_grey(tex, p) - 1.0
     q = p / tex.scale
     if tex.kind == "checker":
         par = np.floor(q).astype(np.int64).sum(axis=1) & 1

@@ -54,6 +54,15 @@ Schema (``?`` = optional, with its default)::
               | {quaternion: [w, x, y, z]}  | [rx, ry, rz] (euler_deg) | [w, x, y, z]
     TEXTURE:  {type: checker | stripes | noise, scale: metres (> 0), contrast?: 0.5 in [0, 1),
                seed?: 0 (noise only), axis?: x (stripes only: x | y | z)}
+              | {type: image, path: FILE (.npy, or .png / .pgm / .jpg read with Pillow),
+                 size: [w, h] metres (> 0), contrast?: 0.5 in [0, 1)}
+              An image texture is a picture on the object's local xy plane (objects only, not
+              the background): its rows run along -y and its columns along +x, centred on the
+              local origin and ``size`` metres wide and high, so a thin box seen from +z shows it
+              upright; grey levels in [0, 1] (8/16-bit images are scaled, colour is averaged)
+              give the factor ``1 + contrast * (2 g - 1)``; outside the picture g = 0.5.  A
+              library caller passes the array itself (``Texture("image", ..., image=array,
+              size=(w, h))``), e.g. a calibration board.
     SERVO:    {profile: run | move, start_s?: time.start_s, start_deg?: 90, zero_deg?: start_deg,
                segments?: [[angle_deg, duration_ms], ...] (run; default the stored fork swing),
                angle_deg, duration_ms (move)}
@@ -106,7 +115,9 @@ MAX_OBJECTS = 10_000
 #: Largest scene file read (bytes).
 MAX_SCENE_BYTES = 16 << 20
 OBJECT_TYPES = ("box", "sphere", "cylinder", "ellipsoid", "group", "mesh")
-TEXTURE_TYPES = ("checker", "stripes", "noise")
+TEXTURE_TYPES = ("checker", "stripes", "noise", "image")
+#: Largest image texture (pixels per side).
+MAX_TEXTURE_SIDE = 16384
 
 
 # ----------------------------------------------------------------------------- dataclasses
@@ -118,6 +129,25 @@ class Texture:
     contrast: float = 0.5
     seed: int = 0
     axis: int = 0              # stripes: 0, 1, 2 = x, y, z
+    #: image textures: (rows, cols) float64 grey levels in [0, 1], and its (width, height) in metres
+    image: np.ndarray | None = field(default=None, compare=False, repr=False)
+    size: tuple = (0.0, 0.0)
+
+    def __post_init__(self):
+        if self.kind == "image":
+            img = np.asarray(self.image, dtype=np.float64) if self.image is not None else None
+            if img is None or img.ndim != 2 or min(img.shape) < 1 \
+                    or max(img.shape) > MAX_TEXTURE_SIDE or not np.all(np.isfinite(img)) \
+                    or img.min() < 0 or img.max() > 1:
+                raise InputError("an image texture needs a 2-D array of grey levels in [0, 1] "
+                                 f"(at most {MAX_TEXTURE_SIDE} pixels a side)")
+            w, h = (float(x) for x in self.size)
+            if not (np.isfinite(w) and np.isfinite(h) and w > 0 and h > 0):
+                raise InputError(f"an image texture needs a size [w, h] > 0 in metres, got {self.size}")
+            img = img.copy()
+            img.setflags(write=False)
+            object.__setattr__(self, "image", img)
+            object.__setattr__(self, "size", (w, h))
 
 
 @dataclass(frozen=True)
@@ -469,6 +499,9 @@ def scene_from_dict(data, *, source: str = "<scene>", base_dir=None, default_nam
         tex = None
         if "texture" in b:
             tex = _texture(v, "background.texture", b["texture"])
+            if tex.kind == "image":
+                v.fail("background.texture.type", "an image texture goes on an object (a thin "
+                                                  "box), not on the background")
             tex = Texture(tex.kind, math.radians(tex.scale), tex.contrast, tex.seed, tex.axis)
         background = Background(
             v.number("background.intensity", b.get("intensity", 0.2), lo=0.0, lo_open=True),
@@ -545,13 +578,20 @@ def _cameras(v: _SceneChecker, data) -> CameraSetup:
 
 
 def _texture(v: _SceneChecker, path, data) -> Texture:
-    m = v.mapping(path, data, ("type", "scale", "contrast", "seed", "axis"),
-                  required=("type", "scale"))
+    m = v.mapping(path, data, ("type", "scale", "contrast", "seed", "axis", "path", "size"),
+                  required=("type",))
     kind = v.choice(_join(path, "type"), m["type"], TEXTURE_TYPES)
     allowed = {"checker": ("type", "scale", "contrast"),
                "stripes": ("type", "scale", "contrast", "axis"),
-               "noise": ("type", "scale", "contrast", "seed")}[kind]
-    v.mapping(path, m, allowed)
+               "noise": ("type", "scale", "contrast", "seed"),
+               "image": ("type", "path", "size", "contrast")}[kind]
+    v.mapping(path, m, allowed, required=("path", "size") if kind == "image" else ("scale",))
+    if kind == "image":
+        size = v.vec(_join(path, "size"), m["size"], positive=True, n=2)
+        image = _texture_image(v, _join(path, "path"), v.string(_join(path, "path"), m["path"]))
+        return Texture("image", 1.0, v.number(_join(path, "contrast"), m.get("contrast", 0.5),
+                                              lo=0.0, hi=1.0, hi_open=True),
+                       image=image, size=(float(size[0]), float(size[1])))
     axis = 0
     if "axis" in m:
         axis = "xyz".index(v.choice(_join(path, "axis"), m["axis"], ("x", "y", "z")))
@@ -561,6 +601,39 @@ def _texture(v: _SceneChecker, path, data) -> Texture:
                             hi_open=True),
                    v.integer(_join(path, "seed"), m.get("seed", 0), lo=0, hi=2**31 - 1),
                    axis)
+
+
+def _texture_image(v: _SceneChecker, key: str, rel: str) -> np.ndarray:
+    """Grey levels in [0, 1] of an image texture file (relative to the scene file)."""
+    p = Path(rel)
+    if not p.is_absolute() and v.base_dir is not None:
+        p = v.base_dir / p
+    if not p.is_file():
+        v.fail(key, f"image file {p} not found (paths are relative to the scene file)")
+    try:
+        if p.suffix.lower() == ".npy":
+            img = np.load(p, allow_pickle=False)
+        else:
+            from PIL import Image
+
+            with Image.open(p) as im:
+                img = np.asarray(im)
+    except ImportError:
+        v.fail(key, f"{p}: reading {p.suffix} images needs Pillow (pip install pillow); or save "
+                    "the picture as .npy")
+    except (OSError, ValueError) as exc:
+        v.fail(key, f"{p}: not a readable image ({exc}); give a .npy, .png, .pgm or .jpg")
+    img = np.asarray(img)
+    if img.ndim == 3:
+        img = img[..., :3].mean(axis=2) if img.dtype.kind != "f" else img.mean(axis=2)
+    if img.dtype.kind in "ui":
+        img = img.astype(np.float64) / (65535.0 if img.max(initial=0) > 255 else 255.0)
+    img = np.asarray(img, dtype=np.float64)
+    if img.ndim != 2 or not np.all(np.isfinite(img)) or img.size == 0 or img.min() < 0 \
+            or img.max() > 1 or max(img.shape) > MAX_TEXTURE_SIDE:
+        v.fail(key, f"{p}: needs a grey (or colour) picture with levels in [0, 1] (floats) or "
+                    f"8/16-bit integers, at most {MAX_TEXTURE_SIDE} pixels a side")
+    return img
 
 
 _COMMON = ("name", "type", "albedo", "texture", "pose", "motion")
