@@ -8,6 +8,9 @@ from __future__ import annotations
 
 #: event_camera_msgs/msg/EventPacket in the camera's own encoding (evt3, libcaer, ...)
 EVENTS = "/event_camera/events"
+#: event_camera_msgs/msg/EventPacket (evt3, EXT_TRIGGER words only): the trigger edges of a
+#: camera whose own encoding cannot carry them (libcaer records), as libcaer_driver keeps them apart
+EVENT_TRIGGERS = "/event_camera/triggers"
 #: sensor_msgs/msg/CameraInfo
 CAMERA_INFO = "/event_camera/camera_info"
 #: geometry_msgs/msg/PoseStamped: the view's T_world_cam

@@ -53,6 +53,15 @@ class ClockMap:
         return int(out) if out.ndim == 0 else out
 
 
+    def host_ns_to_sensor_ns(self, host_ns) -> np.ndarray | int:
+        """The inverse of :meth:`sensor_ns_to_host_ns`: the sensor time (int64 ns) that the
+        fitted clock maps to host time ``host_ns``."""
+        h = np.asarray(host_ns, dtype=np.int64)
+        d = (h - np.int64(round(self.offset_ns))).astype(np.float64) - (self.offset_ns - round(self.offset_ns))
+        out = np.rint(d / self.scale * 1000.0).astype(np.int64) + np.int64(self.device_ref_us) * 1000
+        return int(out) if out.ndim == 0 else out
+
+
 def fit_clock_map(device_us, host_ns, *, one_sided: bool = False, bins: int = 16,
                   source: str = "clock samples") -> ClockMap:
     """Fit a ClockMap to paired samples (see the module docstring for ``one_sided``)."""

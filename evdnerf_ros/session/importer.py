@@ -245,7 +245,7 @@ def _probe(path: Path, options: ImportOptions) -> _Input:
 # =========================================================================== calibration / poses
 
 
-def _read_calibration(path) -> dict:
+def read_calibration(path) -> dict:
     """Intrinsics from a calibration YAML (module doc): {width, height, K, D, distortion_model}."""
     path = Path(path)
     if not path.is_file():
@@ -644,7 +644,7 @@ def import_bags(bags, output, options: ImportOptions = ImportOptions(), *, overw
     width, height = first.width, first.height
     intr, intr_kind = None, "unknown"
     if options.calibration is not None:
-        intr, intr_kind = _read_calibration(options.calibration), "calibration"
+        intr, intr_kind = read_calibration(options.calibration), "calibration"
         if options.fov_deg is not None:
             _warn(notes, f"--fov {options.fov_deg:g} ignored: the calibration {options.calibration} gives the "
                          "intrinsics")

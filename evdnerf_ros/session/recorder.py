@@ -11,6 +11,8 @@
                                 (evt3 by default, with EXT_TRIGGER edges); event_packet()
                                 takes an already serialised EventPacket (a camera's raw
                                 bytes passed through untouched)
+    /event_camera/triggers      EventPacket (evt3 EXT_TRIGGER words only): trigger_edges(), for a
+                                camera whose encoding has no trigger events (libcaer)
     /event_camera/camera_info   sensor_msgs/msg/CameraInfo
     /rig/camera_pose            geometry_msgs/msg/PoseStamped: one (a static camera) or a
                                 trajectory (a moving one)
@@ -35,12 +37,13 @@ import yaml
 from .. import __version__
 from ..atomic import atomic_output
 from ..errors import InputError
-from ..topics import CAMERA_INFO, CAMERA_POSE, EVENTS, SERVO_JOINT_STATES, SERVO_TRIGGER
+from ..topics import CAMERA_INFO, CAMERA_POSE, EVENT_TRIGGERS, EVENTS, SERVO_JOINT_STATES, SERVO_TRIGGER
 from .layout import SESSION_FORMAT, SESSION_FORMAT_VERSION, check_session, session_yaml_path
 
 #: Message type of each standard topic.
 MSGTYPES = {
     EVENTS: "event_camera_msgs/msg/EventPacket",
+    EVENT_TRIGGERS: "event_camera_msgs/msg/EventPacket",
     CAMERA_INFO: "sensor_msgs/msg/CameraInfo",
     CAMERA_POSE: "geometry_msgs/msg/PoseStamped",
     SERVO_JOINT_STATES: "sensor_msgs/msg/JointState",
@@ -134,6 +137,21 @@ class ViewRecorder:
         return self._bag.write_events(EVENTS, events, width=self.width, height=self.height,
                                       encoding=self.encoding,
                                       triggers=triggers if triggers is not None and len(triggers) else None)
+
+    def raw_packet(self, payload, *, stamp_ns: int, time_base: int = 0) -> int:
+        """A sensor's bytes in this view's encoding as one EventPacket, untouched (a camera
+        driver's transfer: evt3 as metavision_driver records it, libcaer records as
+        libcaer_driver publishes them)."""
+        return self._bag.write_raw_packet(EVENTS, payload, encoding=self.encoding, width=self.width,
+                                          height=self.height, stamp_ns=stamp_ns, time_base=time_base)
+
+    def trigger_edges(self, triggers) -> int:
+        """Trigger edges (TRIGGER_DTYPE, the view's clock, whole µs) on their own topic as evt3
+        EXT_TRIGGER words: for an encoding without trigger events (libcaer)."""
+        from ..events.types import empty_events
+
+        return self._bag.write_events(EVENT_TRIGGERS, empty_events(), triggers=triggers, width=self.width,
+                                      height=self.height, encoding="evt3")
 
     def event_packet(self, data, t_ns: int) -> None:
         """An already serialised (CDR) EventPacket, written untouched at bag time `t_ns`:

@@ -69,6 +69,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..options import check_value, flag_name, option, option_fields
+from ..topics import EVENT_TRIGGERS
 from ..atomic import check_output
 from ..events.rate import event_rate, plot_event_rate, save_figure
 from .layout import load_session, session_topics
@@ -177,7 +178,11 @@ def load_view(view, session, options: SyncOptions, ev_topic: str, tr_topic: str)
     with open_bag(view.bag) as bag:
         start_stamp = _start_stamp(bag, tr_topic)
         b0, b1 = bag.start_ns, bag.end_ns
+        separate = EVENT_TRIGGERS != ev_topic and EVENT_TRIGGERS in bag.topics
     ev, tr = stream.events, stream.triggers
+    if separate:              # a libcaer camera's edges, kept on their own topic (libcaer_driver)
+        tr = np.sort(np.concatenate([tr, read_events(view.bag, EVENT_TRIGGERS).triggers]), order="t",
+                     kind="stable")
     width = stream.width or session.width
     height = stream.height or session.height
     lo = [x for x in (b0, int(ev["t"][0]) if ev.size else None, int(tr["t"][0]) if tr.size else None)

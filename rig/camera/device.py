@@ -488,6 +488,12 @@ class Device(abc.ABC):
             self._clock_dirty = True
 
     @property
+    def sensor_time_ns(self) -> int | None:
+        """The latest sensor time the stream has reached (None before the first timed chunk)."""
+        with self._clock_lock:
+            return self._last_sensor_ns
+
+    @property
     def clock(self) -> ClockMap:
         """host_ns (time.monotonic_ns) of a sensor time: ``clock.sensor_ns_to_host_ns(t)``."""
         with self._clock_lock:

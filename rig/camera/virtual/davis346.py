@@ -60,7 +60,7 @@ class VirtualDAVIS346(EmulatedUsbDevice, EmittedTruth):
     USB_CLOCK_MHZ = 80
 
     def __init__(self, source=None, *, serial: str = "DAV00001", firmware: int = 6, logic_version: int = 18,
-                 logic_patch: int = 1, chip_id: int = 5, realtime: bool = True, step_us: int = 10_000,
+                 logic_patch: int = 1, chip_id: int = 5, realtime: bool = True, latency_us: int = 0, step_us: int = 10_000,
                  min_window_us: int = 1_000, idle_wraps: bool = True, max_transfer_bytes: int | None = None,
                  frame_source=None, roi_filter: bool = True, speed: str = "super"):
         super().__init__(D.VID, D.PID, bcd_device=int(firmware) & 0xFF, serial=serial, manufacturer="iniVation",
@@ -73,6 +73,10 @@ class VirtualDAVIS346(EmulatedUsbDevice, EmittedTruth):
                 (self.source.width, self.source.height) == (self.width, self.height):
             self.frame_source = self.source._render
         self.realtime = bool(realtime)
+        # realtime: stream this far behind the wall clock (a camera's pipeline delay), so
+        # that a signal learnt late (the virtual rig's trigger, its joint angles) still
+        # lands at its true sensor time
+        self.latency_us = int(latency_us)
         self.step_us = int(step_us)
         self.min_window_us = int(min_window_us)
         self.idle_wraps = bool(idle_wraps)
@@ -257,7 +261,8 @@ class VirtualDAVIS346(EmulatedUsbDevice, EmittedTruth):
     # --- production -------------------------------------------------------------------
     def _now_us(self) -> int:
         if self.realtime:
-            return (time.monotonic_ns() - self._t0_ns) // 1000
+            now = (time.monotonic_ns() - self._t0_ns) // 1000 - self.latency_us
+            return min(now, self.source.ready_ns(1000 * now) // 1000)   # what is rendered
         return self._produced_us + self.step_us
 
     MAX_STEPS_PER_TRANSFER = 64

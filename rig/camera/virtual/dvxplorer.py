@@ -74,7 +74,7 @@ class VirtualDVXplorer(EmulatedUsbDevice, EmittedTruth):
     neuromorphic-drivers accepts (libcaer: firmware 8, patch >= 2)."""
 
     def __init__(self, source=None, *, serial: str = "DVX00001", firmware: int = 8, logic_version: int = 18,
-                 logic_patch: int = 2, chip_id: int = 20, realtime: bool = True, step_us: int = 10_000,
+                 logic_patch: int = 2, chip_id: int = 20, realtime: bool = True, latency_us: int = 0, step_us: int = 10_000,
                  min_window_us: int = 1_000, idle_wraps: bool = True, max_transfer_bytes: int | None = None,
                  speed: str = "super"):
         super().__init__(D.VID, D.PID, bcd_device=int(firmware) & 0xFF, serial=serial, manufacturer="iniVation",
@@ -83,6 +83,10 @@ class VirtualDVXplorer(EmulatedUsbDevice, EmittedTruth):
         self.width, self.height = D.DVXplorer.width, D.DVXplorer.height
         self.source = _as_source(source, self.width, self.height)
         self.realtime = bool(realtime)
+        # realtime: stream this far behind the wall clock (a camera's pipeline delay), so
+        # that a signal learnt late (the virtual rig's trigger, its joint angles) still
+        # lands at its true sensor time
+        self.latency_us = int(latency_us)
         self.step_us = int(step_us)
         self.min_window_us = int(min_window_us)
         self.idle_wraps = bool(idle_wraps)
@@ -254,7 +258,8 @@ class VirtualDVXplorer(EmulatedUsbDevice, EmittedTruth):
     # --- event production ---------------------------------------------------------------
     def _now_us(self) -> int:
         if self.realtime:
-            return (time.monotonic_ns() - self._t0_ns) // 1000
+            now = (time.monotonic_ns() - self._t0_ns) // 1000 - self.latency_us
+            return min(now, self.source.ready_ns(1000 * now) // 1000)   # what is rendered
         return self._produced_us + self.step_us
 
     #: at most this many step_us windows per bulk IN transfer when not realtime

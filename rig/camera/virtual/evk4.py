@@ -92,7 +92,7 @@ class VirtualEVK4(EmulatedUsbDevice, EmittedTruth):
 
     def __init__(self, source=None, *, serial: int = 0x000A1B2C, sensor_type: int = 0x31,
                  release_version: int = 0x00040200, build_date: int = 0x20240115,
-                 factory_biases: dict | None = None, realtime: bool = True,
+                 factory_biases: dict | None = None, realtime: bool = True, latency_us: int = 0,
                  step_us: int = 10_000, min_window_us: int = 1_000, product_id: int = 0x00F4,
                  speed: str = "super", keep_truth: bool = True):
         super().__init__(R.VENDOR_ID, product_id, bcd_device=0x0100, serial=f"{int(serial):08X}",
@@ -106,6 +106,10 @@ class VirtualEVK4(EmulatedUsbDevice, EmittedTruth):
         self.factory = dict(DEFAULT_FACTORY_BIASES, **(factory_biases or {}))
         self.source = _as_source(source)
         self.realtime = bool(realtime)
+        # realtime: stream this far behind the wall clock (a camera's pipeline delay), so
+        # that a signal learnt late (the virtual rig's trigger, its joint angles) still
+        # lands at its true sensor time
+        self.latency_us = int(latency_us)
         self.step_us = int(step_us)
         self.min_window_us = int(min_window_us)
         self.writes: list[tuple[int, int]] = []     # every register write, in order
@@ -283,7 +287,8 @@ class VirtualEVK4(EmulatedUsbDevice, EmittedTruth):
     # --- event production ---------------------------------------------------------------
     def _now_us(self) -> int:
         if self.realtime:
-            return (time.monotonic_ns() - self._t0_ns) // 1000
+            now = (time.monotonic_ns() - self._t0_ns) // 1000 - self.latency_us
+            return min(now, self.source.ready_ns(1000 * now) // 1000)   # what is rendered
         return max(self._produced_us, 0) + self.step_us
 
     def _produce(self) -> None:

@@ -53,6 +53,12 @@ class EventSource(abc.ABC):
     def restart(self) -> None:
         """Back to sensor time 0 (a twin's timestamp reset / new start)."""
 
+    def ready_ns(self, t_ns: int) -> int:
+        """How far (<= t_ns) events can be handed out now without waiting: a source generating
+        in the background lets a live twin stream only what it has (its control requests are
+        never held up by rendering)."""
+        return t_ns
+
 
 class GivenEvents(EventSource):
     """A given event array in sensor time (t >= 0); ``loop`` repeats it with period
@@ -297,6 +303,9 @@ class CenteredSource(EventSource):
     def restart(self) -> None:
         self.inner.restart()
 
+    def ready_ns(self, t_ns: int) -> int:
+        return self.inner.ready_ns(t_ns)
+
 
 class EmittedTruth:
     """What a twin has streamed, in order: its truth for tests and benchmarks. A twin appends to
@@ -304,6 +313,12 @@ class EmittedTruth:
 
     _emitted: list
     _emitted_tr: list
+    _t0_ns: int
+
+    @property
+    def sensor_zero_host_ns(self) -> int:
+        """time.monotonic_ns() at the twin's sensor time 0 (its clock's truth)."""
+        return self._t0_ns
 
     def emitted_events(self) -> np.ndarray:
         with self.lock:
