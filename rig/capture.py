@@ -42,7 +42,7 @@ from evdnerf_ros.options import option
 from evdnerf_ros.session.recorder import (ViewRecorder, camera_record, servo_record, session_document,
                                           view_record, write_session_yaml)
 
-from .camera.errors import CameraDisconnected
+from .camera.errors import CameraError
 from .camera.record import ChunkWriter
 from .servo import ServoError, ServoTimeout
 from .turntable import turntable_pose, view_azimuth_deg
@@ -50,8 +50,8 @@ from .turntable import turntable_pose, view_azimuth_deg
 #: The servo joint's name in JointState messages and session.yaml.
 JOINT = "servo"
 STORAGES = ("mcap", "sqlite3")
-#: A camera stream whose sensor time does not advance for this long is taken as lost.
-STALL_S = 10.0
+#: After DONE, a camera stream quiet for this long (s) has nothing more to record.
+QUIET_S = 0.5
 
 
 @dataclass
@@ -134,9 +134,10 @@ class CaptureInterrupted(KeyboardInterrupt):
 
 
 def record_view(camera, servo, path: Path, *, K, D, pose, options: CaptureOptions, frame_us: int,
-                stop: threading.Event, log=print) -> ViewResult:
+                stop: threading.Event, live=None, log=print) -> tuple[ViewResult, BaseException | None]:
     """Record one view (see the module docstring). The bag is closed validly whatever happens;
-    an interrupt (``stop`` set), an unplug or a servo fault returns / raises after that."""
+    returns what was recorded and the camera or servo fault that ended the view early (None when
+    it did not; an interrupt is ``stop`` set)."""
     profile = servo.get_profile()
     expected_s = profile.duration_ns / 1e9
     start = done = None
@@ -144,12 +145,12 @@ def record_view(camera, servo, path: Path, *, K, D, pose, options: CaptureOption
     t0 = time.monotonic()
     with ViewRecorder(path, width=camera.width, height=camera.height, encoding=camera.encoding,
                       storage=options.storage) as rec:
-        writer = ChunkWriter(rec, camera)
+        writer = ChunkWriter(rec, camera, also=[live] if live is not None else ())
         servo.drain_events()
-        camera.start()
         run_sent = None
-        last_reached, last_advance = None, time.monotonic()
+        last_chunk = time.monotonic()
         try:
+            camera.start()
             while not stop.is_set():
                 chunk = camera.read(timeout_s=0.02)
                 if chunk is not None:
@@ -163,25 +164,27 @@ def record_view(camera, servo, path: Path, *, K, D, pose, options: CaptureOption
                         start = ev
                     elif ev.motion == "RUN" and ev.kind in ("DONE", "STOPPED") and start is not None:
                         done = ev
-                reached = camera.sensor_time_ns
-                if reached != last_reached:
-                    last_reached, last_advance = reached, now
-                elif now - last_advance > STALL_S:
-                    raise CameraDisconnected(f"{camera.name}: the stream has not advanced for {STALL_S:g} s")
+                if chunk is not None:
+                    last_chunk = now
                 if done is not None:
+                    # the stream has passed DONE + settle, or has been quiet since (a sensor without
+                    # activity sends nothing: there is nothing more to record)
+                    reached = camera.sensor_time_ns
                     end = _sensor_ns_of(writer, camera, servo, start, done.device_us)
                     if reached is not None and end is not None and reached >= end + int(options.settle_s * 1e9):
+                        break
+                    if now - last_chunk > QUIET_S and now > done.host_recv_ns / 1e9 + options.settle_s:
                         break
                 elif run_sent is not None and now > run_sent + expected_s + options.done_timeout_s:
                     raise ServoTimeout(f"{servo.port_name}: no {'START' if start is None else 'DONE'} of RUN within "
                                        f"{expected_s + options.done_timeout_s:.1f} s; the servo reports "
                                        f"{_status(servo)}")
-        except (CameraDisconnected, ServoError) as exc:
+        except (CameraError, ServoError) as exc:
             error = exc
         finally:
             try:
                 camera.stop()
-            except CameraDisconnected:
+            except CameraError:
                 pass
         _write_view_metadata(rec, writer, camera, servo, K=K, D=D, pose=pose, profile=profile,
                              frame_us=frame_us, start=start, done=done)
@@ -190,9 +193,7 @@ def record_view(camera, servo, path: Path, *, K, D, pose, options: CaptureOption
                         None if start is None else int(start.device_us),
                         None if done is None else int(done.device_us), time.monotonic() - t0,
                         None if error is None else str(error))
-    if error is not None:
-        raise error
-    return result
+    return result, error
 
 
 def _sensor_ns_of(writer, camera, servo, start, device_us: int) -> int | None:
@@ -294,9 +295,10 @@ def _existing_views(output: Path) -> dict[str, dict]:
 
 
 def capture_session(output, camera, servo, options: CaptureOptions | None = None, *, resume: bool = False,
-                    stop: threading.Event | None = None, log=print) -> dict:
+                    stop: threading.Event | None = None, live=None, log=print) -> dict:
     """Capture every view into the session folder ``output`` with an opened camera driver
-    (rig.camera.Device) and an opened servo client (rig.servo.ServoClient). Returns a summary."""
+    (rig.camera.Device) and an opened servo client (rig.servo.ServoClient); ``live``: a sink that
+    also gets every packet (rig.capture_cli.LiveEvents). Returns a summary."""
     options = (options or CaptureOptions()).check()
     stop = stop or threading.Event()
     output = Path(output)
@@ -316,6 +318,8 @@ def capture_session(output, camera, servo, options: CaptureOptions | None = None
     frame_us = int(hello.get("frame_us", 20000))
     servo.sync_clock()
     T_home = options.home_pose()
+    # read once: after an unplug or a servo fault the session.yaml is still written
+    devices = _devices_document(options, camera, servo, K, D, intr_source, T_home)
     records = []
     summary = {"views": [], "out": str(output)}
     angles = options.turntable_angles()
@@ -337,20 +341,15 @@ def capture_session(output, camera, servo, options: CaptureOptions | None = None
                   "Enter ")
         _home(servo, options)
         log(f"[{k + 1}/{len(angles)}] {name}: turntable {angle:g} deg, recording ...")
-        error = None
-        try:
-            res = record_view(camera, servo, output / name, K=K, D=D, pose=pose, options=options,
-                              frame_us=frame_us, stop=stop, log=log)
-        except (CameraDisconnected, ServoError) as exc:
-            error = exc
-            res = ViewResult(name, False, {}, None, None, 0.0, str(exc))
+        res, error = record_view(camera, servo, output / name, K=K, D=D, pose=pose, options=options,
+                                 frame_us=frame_us, stop=stop, live=live, log=log)
         records.append(view_record(name, split, pose, azimuth_deg=options.home_azimuth_deg + view_azimuth_deg(angle),
                                    turntable_deg=float(angle), complete=bool(res.complete),
                                    events=int(res.counts.get("events", 0)),
                                    trigger_events=int(res.counts.get("triggers", 0)),
                                    start_device_us=res.start_device_us, done_device_us=res.done_device_us,
                                    dropped_transfers=int(res.counts.get("stats", {}).get("dropped_chunks", 0))))
-        _write_yaml(output, options, camera, servo, K, D, intr_source, records, T_home)
+        _write_yaml(output, options, devices, records)
         summary["views"].append(asdict(res))
         log(f"[{k + 1}/{len(angles)}] {name}: {res.counts.get('events', 0)} events, "
             f"{res.counts.get('triggers', 0)} trigger edges, {res.duration_s:.2f} s"
@@ -372,18 +371,25 @@ def _home(servo, options: CaptureOptions) -> None:
         servo.home(options.home_ms)
 
 
-def _write_yaml(output: Path, options, camera, servo, K, D, intr_source: str, views: list, T_home) -> None:
+def _devices_document(options, camera, servo, K, D, intr_source: str, T_home) -> dict:
+    """session.yaml's rig and camera sections, read from the devices at the session's start."""
+    return {
+        "rig": {"kind": "turntable" if options.turntable else "manual",
+                "ring_radius_m": float(options.ring_radius_m), "elevation_deg": float(options.elevation_deg),
+                "look_at": [float(v) for v in options.look_at], "home_azimuth_deg": float(options.home_azimuth_deg),
+                "T_world_cam_home": np.asarray(T_home).tolist(), "firmware_version": _firmware(servo),
+                "device_serial": servo.port_name},
+        "camera": dict(camera_record(camera.width, camera.height, K, D), model=camera.model, serial=camera.serial,
+                       firmware_version=int(camera.firmware_version),
+                       logic_version=None if camera.logic_version is None else int(camera.logic_version),
+                       encoding=camera.encoding, intrinsics_source=intr_source,
+                       biases={k: int(v) for k, v in camera.biases.items()}),
+    }
+
+
+def _write_yaml(output: Path, options, devices: dict, views: list) -> None:
     doc = session_document(
-        source={"kind": "capture", "software_version": __version__},
-        rig={"kind": "turntable" if options.turntable else "manual", "ring_radius_m": float(options.ring_radius_m),
-             "elevation_deg": float(options.elevation_deg), "look_at": [float(v) for v in options.look_at],
-             "home_azimuth_deg": float(options.home_azimuth_deg), "T_world_cam_home": np.asarray(T_home).tolist(),
-             "firmware_version": _firmware(servo), "device_serial": servo.port_name},
-        camera=dict(camera_record(camera.width, camera.height, K, D), model=camera.model, serial=camera.serial,
-                    firmware_version=int(camera.firmware_version),
-                    logic_version=None if camera.logic_version is None else int(camera.logic_version),
-                    encoding=camera.encoding, intrinsics_source=intr_source,
-                    biases={k: int(v) for k, v in camera.biases.items()}),
+        source={"kind": "capture", "software_version": __version__}, **devices,
         servo=servo_record(JOINT),
         thresholds={"c_pos": float(options.c_pos), "c_neg": float(options.c_neg)},
         options={k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(options).items()},

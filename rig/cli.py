@@ -230,7 +230,7 @@ def _cmd_camera(args) -> int:
 
 
 def register(subparsers) -> None:
-    """Add `flash` and `servo` to the `evdnerf` command (entry point `evdnerf.commands`)."""
+    """Add `flash`, `servo`, `camera` and `capture` to the `evdnerf` command (entry point `evdnerf.commands`)."""
     from .flash import BOARDS
 
     p = subparsers.add_parser("flash", help="flash the servo-rig firmware with avrdude",
@@ -282,6 +282,10 @@ def register(subparsers) -> None:
                    help="start angle then 1..8 (angle, ms) pairs; angles 0..180 deg with at "
                         "most 3 decimals, durations 1..65535 ms")
     p.set_defaults(func=_cmd_servo)
+
+    from .capture_cli import register as register_capture
+
+    register_capture(subparsers)
 
     p = subparsers.add_parser("camera", help="event cameras over USB: list, info, record (real or virtual)",
                               description="iniVation DVXplorer and Prophesee EVK4 over USB with the toolkit's "

@@ -108,6 +108,10 @@ class ConvertOptions:
                                             nargs=2, duration=True, low=-2**62, high=2**62, cli=False,
                                             none_help="the motion window")
     downsample: int = option(1, "2: sum events over 2x2 pixel blocks, as the paper does", choices=DOWNSAMPLE)
+    crop: tuple[int, int, int, int] | None = option(None, "keep only the sensor window X Y W H (before "
+                                                    "downsampling; K shifted): a scene that fills part of the sensor",
+                                                    kind=int, nargs=4, low=0, high=65535,
+                                                    metavar=("X", "Y", "W", "H"), none_help="the whole sensor")
     # "sync" | "ground-truth" | (library only) {view: offset_ns}
     offsets: str | Mapping = option("sync", "clock offsets from `evdnerf sync` or, for simulated sessions, the "
                                             "injected ground truth", choices=OFFSET_SOURCES)
@@ -136,6 +140,8 @@ class ConvertOptions:
             if f.name == "offsets" and isinstance(value, Mapping):
                 continue
             check_value(value, f, spec, f"convert: {flag_name(f, spec) if spec.cli else f.name}")
+        if self.crop is not None and (int(self.crop[2]) < 1 or int(self.crop[3]) < 1):
+            raise InputError(f"convert: --crop {' '.join(map(str, self.crop))}: width and height must be >= 1")
         if self.window is not None and int(self.window[1]) <= int(self.window[0]):
             raise InputError(f"convert: window end {self.window[1]} ns must be after its start {self.window[0]} ns")
 
@@ -414,7 +420,27 @@ def _check_span(plan: _ViewPlan, start: int, end: int | None) -> None:
                          "recording (re-run `evdnerf sync`, or fix views[].sync.offset_ns)")
 
 
-def _load_frames(v: ViewRecord, offset: int, factor: int, width: int, height: int) -> dict | None:
+def _check_crop(crop, width: int, height: int):
+    """The crop window (x, y, w, h) inside the sensor, or None."""
+    if crop is None:
+        return None
+    x, y, w, h = map(int, crop)
+    if x + w > width or y + h > height:
+        raise InputError(f"convert: --crop {x} {y} {w} {h} reaches beyond the {width}x{height} sensor; choose a "
+                         "window inside it")
+    return x, y, w, h
+
+
+def crop_K(K, crop) -> np.ndarray:
+    """Intrinsics of a sensor window: the principal point moves by the window's origin."""
+    K = np.array(K, np.float64)
+    if crop is not None:
+        K[0, 2] -= crop[0]
+        K[1, 2] -= crop[1]
+    return K
+
+
+def _load_frames(v: ViewRecord, offset: int, factor: int, width: int, height: int, crop=None) -> dict | None:
     from ..io.npz import load_npz
 
     if v.frames is None:
@@ -430,6 +456,9 @@ def _load_frames(v: ViewRecord, offset: int, factor: int, width: int, height: in
     frames = frames.astype(np.float32, copy=False)
     if not np.all(np.isfinite(frames)):
         raise InputError(f"frames file {v.frames}: frames contain NaN or inf")
+    if crop is not None:
+        x, y, cw, ch = crop
+        frames = frames[:, y:y + ch, x:x + cw]
     out = {"frames": downsample_frames(frames, factor)}
     for k in ("t_start", "t_end", "t"):
         if k in data:
@@ -474,7 +503,8 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
     offsets, offsets_source = resolve_offsets(session, options.offsets)
     topics = _topics(session, options)
     s = options.downsample
-    W0, H0 = session.width, session.height
+    crop = _check_crop(options.crop, session.width, session.height)
+    W0, H0 = (session.width, session.height) if crop is None else crop[2:]
     W, H = W0 // s, H0 // s
     if W < 1 or H < 1:
         raise InputError(f"convert: a {W0}x{H0} camera cannot be downsampled by {s}")
@@ -516,15 +546,16 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
                 v = plan.record
                 t_view = time.perf_counter()
                 try:
-                    vw = w.add_view(v.name, split=v.split, K=downsample_K(K, s), T_world_cam=plan.T_world_cam,
+                    vw = w.add_view(v.name, split=v.split, K=downsample_K(crop_K(K, crop), s),
+                                    T_world_cam=plan.T_world_cam,
                                     poses_t=plan.poses_t, poses_T=plan.poses_T,
                                     attrs={"offset_ns": np.int64(plan.offset_ns), "source_bag": str(v.bag),
                                            "azimuth_deg": np.nan if v.azimuth_deg is None else v.azimuth_deg,
                                            "D": np.asarray(session.D, np.float64)})
                     stats = _stream_view(v, plan.offset_ns, topics["events"], start, end, s, W0, H0, vw, rate,
-                                         options.batch_events)
+                                         options.batch_events, crop, (session.width, session.height))
                     if options.frames:
-                        fr = _load_frames(v, plan.offset_ns, s, W0, H0)
+                        fr = _load_frames(v, plan.offset_ns, s, session.width, session.height, crop)
                         if fr is not None:
                             vw.add_frames(fr["frames"], fr["t_start"], fr["t_end"], fr.get("t"))
                 except EvdnerfError as exc:
@@ -554,7 +585,7 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
                     "bag": str(Path(v.bag).resolve()), "split": v.split, "offset_ns": plan.offset_ns,
                     "sync": v.sync, "ground_truth_clock_offset_ns": (v.ground_truth or {}).get("clock_offset_ns"),
                     "moving_camera": plan.moving,
-                    **{k: plan.stats[k] for k in ("events_decoded", "dropped_odd_edge")},
+                    **{k: plan.stats[k] for k in ("events_decoded", "dropped_odd_edge", "outside_crop")},
                 }
             provenance = {
                 "software": "evdnerf_ros", "software_version": __version__,
@@ -564,7 +595,8 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
                 "session_source": session.data.get("source"),
                 "offsets_source": offsets_source, "sync_summary": session.data.get("sync"),
                 "window": {"start_ns": start, "end_ns": end, "source": window_source, **end_info},
-                "downsample": s, "source_size": [W0, H0],
+                "downsample": s, "source_size": [session.width, session.height],
+                "crop": None if crop is None else list(crop),
                 "K_scaling": "fx' = fx/s, fy' = fy/s, cx' = (cx+0.5)/s - 0.5, cy' = (cy+0.5)/s - 0.5",
                 "intrinsics_source": options.intrinsics, "poses_source": options.poses, "topics": topics,
                 "views": prov_views,
@@ -586,11 +618,13 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
 
 
 def _stream_view(v: ViewRecord, offset: int, topic: str, start: int, end: int | None, s: int, W0: int, H0: int,
-                 vw, rate: _RateHistogram | None, batch_events: int) -> dict:
+                 vw, rate: _RateHistogram | None, batch_events: int, crop=None, sensor=None) -> dict:
     """One pass over the view's event topic: shift, crop, downsample, append."""
     from ..io.rosbag2 import open_bag
 
-    stats = {"events_decoded": 0, "events_in_window": 0, "dropped_odd_edge": 0, "first_t": None, "last_t": None}
+    stats = {"events_decoded": 0, "events_in_window": 0, "dropped_odd_edge": 0, "outside_crop": 0, "first_t": None,
+             "last_t": None}
+    sensor = (W0, H0) if sensor is None else tuple(sensor)      # the camera's size (W0, H0: after the crop)
     odd = s > 1 and (W0 % s or H0 % s)
     pending: list[np.ndarray] = []
     n_pending = 0
@@ -623,6 +657,13 @@ def _stream_view(v: ViewRecord, offset: int, topic: str, start: int, end: int | 
         if end is not None and i1 < ev.size:
             done = True
         ev = ev[i0:i1]
+        if crop is not None and ev.size:       # the sensor window, then its own pixel grid
+            x0, y0 = crop[0], crop[1]
+            keep = (ev["x"] >= x0) & (ev["x"] < x0 + W0) & (ev["y"] >= y0) & (ev["y"] < y0 + H0)
+            stats["outside_crop"] += int(ev.size - np.count_nonzero(keep))
+            ev = ev[keep]
+            ev["x"] -= np.uint16(x0)
+            ev["y"] -= np.uint16(y0)
         if s > 1 and ev.size:
             if odd:
                 keep = (ev["x"] < W0 - W0 % s) & (ev["y"] < H0 - H0 % s)
@@ -637,9 +678,9 @@ def _stream_view(v: ViewRecord, offset: int, topic: str, start: int, end: int | 
     try:
         with open_bag(v.bag) as bag:
             for pk in bag.iter_event_packets(topic):
-                if (pk.width, pk.height) != (W0, H0):
+                if (pk.width, pk.height) != sensor:
                     raise InputError(f"the event stream is {pk.width}x{pk.height} but session.yaml's camera is "
-                                     f"{W0}x{H0}; every view must have the session's resolution")
+                                     f"{sensor[0]}x{sensor[1]}; every view must have the session's resolution")
                 if pk.events.size:
                     pending.append(pk.events)
                     n_pending += pk.events.size

@@ -97,7 +97,12 @@ def load_session(root) -> Session:
         raise InputError(f"{root}: no session.yaml; a session folder is what `evdnerf simulate` "
                          "or the capture node writes")
     data = load_yaml(path, what="session.yaml")
-    return _check_session(root, path, data)
+    session = _check_session(root, path, data)
+    unfinished = [v.get("name") for v in data["views"] if isinstance(v, dict) and v.get("complete") is False]
+    if unfinished:
+        raise InputError(f"{path}: views {unfinished} are incomplete (the capture was interrupted or failed "
+                         "in them); record them again with `evdnerf capture -o SESSION --resume`")
+    return session
 
 
 def check_session(root, data, *, path=None) -> Session:

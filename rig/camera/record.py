@@ -33,8 +33,9 @@ class ChunkWriter:
     """Writes a camera's EventChunks onto a :class:`ViewRecorder` in the camera's encoding and
     knows the view's clock (:meth:`view_ns`)."""
 
-    def __init__(self, recorder: ViewRecorder, device):
+    def __init__(self, recorder: ViewRecorder, device, *, also=()):
         self.rec, self.device = recorder, device
+        self.also = list(also)              # more sinks with raw_packet / trigger_edges (live topics)
         self.counts = {"messages": 0, "events": 0, "triggers": 0, "bytes": 0, "sensor_zero_wall_ns": None,
                        "first_sensor_ns": None, "last_sensor_ns": None}
         self.rising_ns: list[int] = []      # sensor times of the trigger input's rising edges
@@ -70,14 +71,21 @@ class ChunkWriter:
             first = ev["t"][0] if ev.size else (tr["t"][0] if tr.size else None)
             stamp = chunk.wall_ns if first is None else zero + int(first)   # no item: the stamp defines nothing
             counts["messages"] += self.rec.raw_packet(chunk.raw, stamp_ns=stamp)
+            for sink in self.also:
+                sink.raw_packet(chunk.raw, stamp_ns=stamp)
             return
         if ev.size:
             stamp, time_base, payload = device.libcaer_packet(chunk, sensor_zero_host_ns=zero)
             counts["messages"] += self.rec.raw_packet(payload, stamp_ns=stamp, time_base=time_base)
+            for sink in self.also:
+                sink.raw_packet(payload, stamp_ns=stamp, time_base=time_base)
         if tr.size:
             shifted = tr.copy()
             shifted["t"] += np.int64(zero - zero % 1000)     # EVT 3.0 carries whole microseconds
-            counts["messages"] += self.rec.trigger_edges(np.sort(shifted, order="t"))
+            shifted = np.sort(shifted, order="t")
+            counts["messages"] += self.rec.trigger_edges(shifted)
+            for sink in self.also:
+                sink.trigger_edges(shifted)
 
 
 def record(device, path, *, duration_s: float, storage: str = "mcap", log=print) -> dict:

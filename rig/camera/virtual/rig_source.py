@@ -88,6 +88,7 @@ class RigDrivenSource(EventSource):
         self.zero_host_ns = lambda: 0          # set by the rig: the twin's host time of sensor 0
         self.renders = 0
         self.late_renders = 0
+        self.error: BaseException | None = None      # why the renderer thread stopped, if it did
         self._cv = threading.Condition()
         self._epoch = 0
         self._stop = False
@@ -159,6 +160,17 @@ class RigDrivenSource(EventSource):
             time.sleep(0.001)
 
     def _run(self) -> None:
+        try:
+            self._generate_forever()
+        except BaseException as exc:  # noqa: BLE001 - reported: the twin's stream stops advancing
+            self.error = exc
+            import sys
+            import traceback
+
+            print(f"virtual rig: the scene renderer failed: {exc!r}", file=sys.stderr)
+            traceback.print_exc()
+
+    def _generate_forever(self) -> None:
         from evdnerf_ros.events.codecs import quantize_to_us
         from evdnerf_ros.sim import EventGenerator, simulate_renderer
 

@@ -1,0 +1,310 @@
+"""`evdnerf capture` and the ROS executable `capture` (what `ros2 launch rig capture.launch.py` runs).
+
+Both take the same settings: the capture node's options (rig.capture.CaptureOptions) plus where
+the session goes and which rig runs it:
+
+    evdnerf capture -o SESSION [--camera-serial S] --servo-port /dev/ttyACM0 [--views 8] ...
+    evdnerf capture -o SESSION --virtual [--virtual-model evk4] [--scene fork] [--scene-size 64x48]
+    evdnerf capture --params-file config/capture.yaml [-o SESSION]
+    capture --ros-args --params-file config/capture.yaml -p output:=SESSION -p virtual:=true
+
+``--virtual`` runs the closed-loop virtual rig (rig.virtual_rig): the firmware in simavr, the
+camera's twin on emulated USB, the scene driven by the firmware's pins; the capture itself then
+runs in a child process (the camera driver needs umockdev's preload) with the rig's truth as its
+calibration, geometry and thresholds. SIGINT / SIGTERM stop after closing the current view (it is
+marked incomplete in session.yaml); ``--resume`` records only the views not complete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import tempfile
+import threading
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import yaml
+
+from evdnerf_ros.errors import InputError
+from evdnerf_ros.options import add_options, check_value, option, option_fields, options_from_args
+from evdnerf_ros.ros.node import Node
+
+from .capture import CaptureInterrupted, CaptureOptions, capture_session
+
+NODE = "capture"
+
+
+@dataclass
+class RigChoice:
+    """Where the session goes and which rig records it (the rest is CaptureOptions)."""
+
+    output: str | None = option(None, "session folder to write", kind=str, flag="--output")
+    resume: bool = option(False, "record only the views of OUTPUT that are not complete")
+    virtual: bool = option(False, "capture on the closed-loop virtual rig (firmware in simavr, camera twin)")
+    virtual_model: str = option("evk4", "camera twin of the virtual rig", choices=("evk4", "dvxplorer", "davis346"))
+    scene: str = option("fork", "scene of the virtual rig (preset or YAML with one servo joint)", kind=str)
+    scene_size: tuple = option((64, 48), "the virtual rig's scene is rendered at this size in the sensor's centre",
+                               nargs=2, kind=int, low=1, high=4096, metavar=("W", "H"))
+    rate_hz: float = option(500.0, "the virtual rig's render rate while something moves (Hz)", low=1, high=100_000)
+    live: bool = option(False, "also publish the events live on ~/events (and ~/triggers), best effort, as "
+                               "metavision_driver does (DDS)")
+
+
+def _parameter_specs():
+    """The node's declared parameters: one per option, same default, range and help."""
+    from evdnerf_ros.ros.parameters import ParameterSpec
+
+    specs = []
+    for cls in (RigChoice, CaptureOptions):
+        for f, spec in option_fields(cls):
+            default = list(f.default) if isinstance(f.default, tuple) else f.default
+            kind = list if isinstance(default, list) else (spec.kind or type(default))
+            if default is None:
+                default, kind = "", str            # ROS has no null: "" means "not set"
+            specs.append(ParameterSpec(f.name, default, spec.help, type=kind, read_only=True, min=spec.low,
+                                       max=spec.high, choices=spec.choices))
+    return specs
+
+
+class CaptureNode(Node):
+    """The capture node's ROS face: declared parameters, live event topics, logging."""
+    NAME = NODE
+    PARAMETERS = _parameter_specs()
+
+
+class LiveEvents:
+    """Publishes what the capture records, live: the camera's packets on ``~/events`` (and a
+    libcaer camera's trigger edges on ``~/triggers``), best effort, through a node's publishers."""
+
+    def __init__(self, node):
+        from evdnerf_ros.io.packetizer import EVENT_PACKET, Packetizer
+
+        self.events = node.create_publisher("~/events", EVENT_PACKET, qos="sensor_data")
+        self.triggers = node.create_publisher("~/triggers", EVENT_PACKET, qos="sensor_data")
+        pubs = {self.events.topic: self.events, self.triggers.topic: self.triggers}
+        self.packetizer = Packetizer(lambda topic, _type, data, t: pubs[topic].publish_raw(data, t), name=node.name)
+        self.camera = None                      # (width, height, encoding) of the camera, set by for_camera
+
+    def for_camera(self, camera) -> "LiveEvents":
+        self.camera = (camera.width, camera.height, camera.encoding)
+        return self
+
+    # the ViewRecorder methods rig.camera.record.ChunkWriter writes through
+    def raw_packet(self, payload, *, stamp_ns: int, time_base: int = 0) -> int:
+        w, h, enc = self.camera
+        return self.packetizer.write_raw_packet(self.events.topic, payload, encoding=enc, width=w, height=h,
+                                                stamp_ns=stamp_ns, time_base=time_base)
+
+    def trigger_edges(self, triggers) -> int:
+        from evdnerf_ros.events.types import empty_events
+
+        w, h, _ = self.camera
+        return self.packetizer.write_events(self.triggers.topic, empty_events(), triggers=triggers, width=w,
+                                            height=h, encoding="evt3")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "capture", help="capture a session: one bag per view while the servo runs its motion (real or virtual rig)",
+        description="Capture one rosbag2 per viewpoint while the servo firmware runs its stored motion; "
+                    "--virtual runs the closed-loop virtual rig. Settings: flags, --config FILE (YAML of "
+                    "option: value) or --params-file FILE (ros__parameters of node 'capture', as "
+                    "config/capture.yaml).")
+    p.add_argument("-o", dest="output", default=argparse.SUPPRESS, help="session folder to write (same as --output)")
+    p.add_argument("--params-file", help="ros__parameters YAML (node 'capture'), as config/capture.yaml")
+    add_options(p, RigChoice, config=False)
+    add_options(p, CaptureOptions)
+    p.set_defaults(func=_cmd_capture)
+
+
+def _split_params(params: dict, where: str) -> dict:
+    """ROS parameters -> checked option values of RigChoice and CaptureOptions."""
+    known = {f.name: (f, spec) for cls in (RigChoice, CaptureOptions) for f, spec in option_fields(cls)}
+    out = {}
+    for key, value in params.items():
+        name = str(key).replace("-", "_")
+        if name not in known:
+            raise InputError(f"{where}: {key}: unknown parameter of node {NODE!r}; known: {', '.join(sorted(known))}")
+        f, spec = known[name]
+        if f.default is None and value == "":     # ROS has no null: "" is "not set"
+            out[name] = None
+            continue
+        if spec.nargs is not None and isinstance(value, list):
+            value = tuple(value)
+        out[name] = check_value(value, f, spec, f"{where}: {key}")
+    return out
+
+
+def _resolve(args) -> tuple[RigChoice, CaptureOptions]:
+    """Flags typed > --config FILE > --params-file FILE > defaults; one file may hold the keys of
+    both option sets."""
+    files = []
+    if getattr(args, "config", None):
+        from evdnerf_ros.yamlcheck import load_yaml
+
+        data = load_yaml(args.config, what="config file") or {}
+        if not isinstance(data, dict):
+            raise InputError(f"{args.config}: expected a mapping of option: value")
+        files.append((data, args.config))
+        del args.config
+    if getattr(args, "params_file", None):
+        from evdnerf_ros.ros.parameters import load_params_file
+
+        files.append((load_params_file(args.params_file, NODE), args.params_file))
+    for data, where in files:
+        for name, value in _split_params(data, where).items():
+            if not hasattr(args, name):           # what was typed (or came earlier) wins
+                setattr(args, name, value)
+    rig = options_from_args(RigChoice, args)
+    opts = options_from_args(CaptureOptions, args).check()
+    if not rig.output:
+        raise InputError("capture: give the session folder to write with -o SESSION (or output: in the params file)")
+    return rig, opts
+
+
+def _cmd_capture(args) -> int:
+    rig, opts = _resolve(args)
+    return run(rig, opts)
+
+
+def run(rig: RigChoice, opts: CaptureOptions) -> int:
+    if rig.virtual:
+        return _run_virtual(rig, opts)
+    return _run_real(rig, opts)
+
+
+def _run_real(rig: RigChoice, opts: CaptureOptions) -> int:
+    from .camera import open_camera
+    from .servo import ServoClient
+
+    if not opts.servo_port:
+        raise InputError("capture: give the servo board's port with --servo-port (e.g. /dev/ttyACM0), or "
+                         "--virtual for the virtual rig")
+    stop = threading.Event()
+    got: list[int] = []
+
+    def on_signal(signum, _frame):
+        if stop.is_set() and signum == signal.SIGINT:
+            raise KeyboardInterrupt            # a second Ctrl-C: at once
+        got.append(signum)
+        stop.set()
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    node = None
+    try:
+        live = None
+        if rig.live:
+            node = CaptureNode([], overrides=_node_values(rig, opts))
+            live = LiveEvents(node)
+        with open_camera(serial=opts.camera_serial, model=opts.camera_model) as cam, \
+                ServoClient(opts.servo_port) as servo:
+            capture_session(rig.output, cam, servo, opts, resume=rig.resume, stop=stop,
+                            live=None if live is None else live.for_camera(cam),
+                            log=print if node is None else node.logger.info)
+    except CaptureInterrupted as exc:
+        print(f"evdnerf: {exc}", file=sys.stderr)
+        return 143 if got and got[-1] == signal.SIGTERM else 130
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        if node is not None:
+            node.shutdown()
+    return 0
+
+
+def _node_values(rig: RigChoice, opts: CaptureOptions) -> dict:
+    """The node's parameters as ROS holds them (lists for tuples, "" for None)."""
+    out = {}
+    for obj in (rig, opts):
+        for k, v in asdict(obj).items():
+            out[k] = "" if v is None else (list(v) if isinstance(v, tuple) else v)
+    return out
+
+
+def spawn_virtual_capture(vr, rig: RigChoice, opts: CaptureOptions, workdir, **popen_kw):
+    """Start `evdnerf capture` against the running virtual rig ``vr`` in a child process (the
+    camera driver needs umockdev's preload), with the rig's truth as its calibration, geometry,
+    thresholds, camera serial and servo port. Returns the Popen."""
+    from .camera.virtual.usb import spawn_child
+
+    workdir = Path(workdir)
+    ring = vr.ring()
+    c_pos, c_neg = vr.twin.thresholds()
+    cal = workdir / "calibration.yaml"
+    cal.write_text(yaml.safe_dump(vr.calibration_document()))
+    values = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(opts).items()}
+    values.update(camera_serial=vr.camera_serial, camera_model=None, servo_port=vr.port, calibration=str(cal),
+                  ring_radius_m=float(ring.radius), elevation_deg=float(ring.elevation_deg),
+                  look_at=[float(v) for v in ring.look_at], home_azimuth_deg=float(ring.offset_deg),
+                  c_pos=float(c_pos), c_neg=float(c_neg), live=bool(rig.live))
+    config = workdir / "capture.yaml"
+    config.write_text(yaml.safe_dump(values))
+    argv = [sys.executable, "-m", "evdnerf_ros", "capture", "-o", str(rig.output), "--config", str(config)]
+    if rig.resume:
+        argv.append("--resume")
+    return spawn_child(argv, vr.bus, **popen_kw)
+
+
+def _run_virtual(rig: RigChoice, opts: CaptureOptions) -> int:
+    """The virtual rig here; the capture, against it, in a child process."""
+    from .virtual_rig import VirtualRig
+
+    with VirtualRig(model=rig.virtual_model, scene=rig.scene, scene_size=tuple(rig.scene_size),
+                    rate_hz=rig.rate_hz) as vr, tempfile.TemporaryDirectory(prefix="evdnerf-capture-") as tmp:
+        print(f"virtual rig: firmware in simavr on {vr.port}, {rig.virtual_model} twin (serial {vr.camera_serial}) "
+              f"streaming {rig.scene} at {rig.scene_size[0]}x{rig.scene_size[1]}", file=sys.stderr)
+        proc = spawn_virtual_capture(vr, rig, opts, tmp, stdout=None, stderr=None)
+
+        def forward(signum, _frame):
+            proc.send_signal(signum)              # the child closes its view and exits
+
+        old = {s: signal.signal(s, forward) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            code = proc.wait()
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+        late = sum(not r.on_time for r in vr.trigger_log if r.sensor_ns is not None)
+        if late or vr.source.late_renders:
+            print(f"virtual rig: {late} trigger edges placed late, {vr.source.late_renders} chunks rendered with "
+                  "stale joint angles (the machine fell behind real time)", file=sys.stderr)
+        return code
+
+
+# --------------------------------------------------------------------------- ROS executable
+
+
+def main(argv=None) -> int:
+    """Console script ``capture``: ``capture --ros-args --params-file F -p name:=value``."""
+    from evdnerf_ros.errors import EvdnerfError
+    from evdnerf_ros.ros.args import parse_ros_args
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] in (["-h"], ["--help"]):
+        print(__doc__)
+        print("parameters:", ", ".join(f.name for cls in (RigChoice, CaptureOptions) for f in fields(cls)))
+        return 0
+    try:
+        ros, rest = parse_ros_args(argv, NODE)
+        if rest:
+            raise InputError(f"capture: unexpected arguments {rest}; settings go in --ros-args -p name:=value "
+                             "or --params-file")
+        from evdnerf_ros.ros.parameters import load_params_file
+
+        params = {}
+        for path in ros.params_files:
+            params.update(load_params_file(path, NODE))
+        params.update(ros.params)
+        ns = argparse.Namespace(**_split_params(params, "--ros-args"))
+        rig, opts = _resolve(ns)
+        return run(rig, opts)
+    except EvdnerfError as exc:
+        print(f"capture: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+__all__ = ["RigChoice", "CaptureNode", "LiveEvents", "register", "run", "main", "spawn_virtual_capture"]
