@@ -67,6 +67,12 @@ ensure_packages "the servo firmware" $FIRMWARE_PACKAGES
 # tests are skipped with the reason.
 USB_PACKAGES="umockdev gir1.2-umockdev-1.0 python3-gi libusb-1.0-0"
 ensure_packages "the virtual USB cameras" $USB_PACKAGES
+
+# The independent DDS peer of the ROS 2 tests (tests/fastdds_peer, built with cmake during the
+# run): eProsima Fast DDS 2.9, ROS 2's default middleware; fastddsgen / fastdds-tools are its
+# type generator and the `fastdds` discovery tool.
+FASTDDS_PACKAGES="libfastrtps-dev fastddsgen fastdds-tools cmake g++"
+ensure_packages "the Fast DDS peer" $FASTDDS_PACKAGES
 if [ -d /usr/lib/python3/dist-packages/gi ] && ! .venv/bin/python -c "import gi" 2>/dev/null; then
   site=$(.venv/bin/python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")
   mkdir -p .venv/system-gi

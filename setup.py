@@ -43,10 +43,13 @@ setup(
         "test": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "mcap>=1.1",
                  "mcap-ros2-support>=0.5", "expelliarmus==1.1.12",
                  "evlib==0.13.2",  # peer codec and peer simulator in tests/benchmarks
-                 "neuromorphic-drivers>=0.18,<0.19"],  # peer USB driver of the camera twins
+                 "neuromorphic-drivers>=0.18,<0.19",  # peer USB driver of the camera twins
+                 "eclipse-zenoh>=1.0,<2"],  # Zenoh transport and its independent peer (tests/test_ros_zenoh.py)
+        "zenoh": ["eclipse-zenoh>=1.0,<2"],  # RMW_IMPLEMENTATION=rmw_zenoh_cpp (evdnerf_ros.ros.zenoh_transport)
     },
     entry_points={"console_scripts": ["evdnerf = evdnerf_ros.cli:main",
-                                      "event_publisher = evdnerf_ros.nodes.event_publisher:main"],
+                                      "event_publisher = evdnerf_ros.nodes.event_publisher:main",
+                                      "capture = rig.capture_cli:main"],
                   # plugin commands of the `evdnerf` CLI (evdnerf_ros never imports rig)
                   "evdnerf.commands": ["rig = rig.cli:register"]},
     zip_safe=True,

@@ -142,6 +142,75 @@ def bench_leave_out(tmp, quick):
     return res
 
 
+def trained_fork_run(work: Path, minutes: float = 2.0) -> tuple[Path, Path]:
+    """A small trained run for the published-vs-true curves: the fork simulated at 64x64 (8 + 2
+    views, 2x2 supersampling, ground-truth offsets), trained ``minutes`` with the default config.
+    Reused when WORK already holds it."""
+    from evdnerf_ros.session.convert import run_convert
+    from evdnerf_ros.sim.simulate import SimulationOptions, simulate_session
+    from evdnerf_ros.train.trainer import run_train
+
+    work.mkdir(parents=True, exist_ok=True)
+    h5, run = work / "fork64.h5", work / "fork64_run"
+    if not h5.exists():
+        simulate_session("fork", work / "session", SimulationOptions(
+            views=8, val_views=2, resolution=(64, 64), frame_rate_hz=20, blur_samples=2, gt_times=0,
+            supersample=2, jobs=1, min_step_ns=2_000_000), log=lambda *_: None)
+        run_convert(work / "session", h5, offsets="ground-truth", log=lambda *_: None)
+    if not (run / "checkpoint.pt").exists():
+        run_train(h5, run, minutes=minutes, overwrite=True, log=lambda *_: None)
+    return h5, run
+
+
+#: publisher levers of the published-vs-true sweep (node parameters)
+LEVERS = {"plain (every ray, every sample)": {"leave_out": False, "reuse_static": False},
+          "leave-out (occupancy rays)": {"reuse_static": False},
+          "static reuse (default)": {},
+          "baked 32": {"bake_resolution": 32}, "baked 64": {"bake_resolution": 64},
+          "baked 96": {"bake_resolution": 96},
+          "static reuse, tolerance 0.5 C": {"tolerance_c": 0.5},
+          "static reuse, tolerance 0.02 C": {"tolerance_c": 0.02}}
+
+
+def bench_published(work: Path, quick: bool, threads: int) -> dict:
+    """Published events against the simulator's along the same path (eval.published), for each
+    publisher lever (error against run time) and against resolution (RTF)."""
+    import torch
+
+    from evdnerf_ros.eval.published import published_vs_true
+
+    torch.set_num_threads(threads)
+    h5, run = trained_fork_run(work, minutes=1.0 if quick else 2.0)
+    span = 100_000_000 if quick else 300_000_000
+    windows = 16
+    out = {"threads": threads, "span_s": span / 1e9, "windows": windows, "run": "fork 64x64, 8 + 2 views, "
+           f"{'1' if quick else '2'} min of training", "levers": {}, "resolution": []}
+
+    def one(path, params, ref, **kw):
+        r = published_vs_true(run, h5, n_windows=windows, static=path == "static", duration_ns=span,
+                              publisher=params, true_reference=ref, log=lambda m: print(m, flush=True), **kw)
+        return r
+
+    for path in ("static", "orbit"):
+        ref, rows = None, []
+        for name, params in LEVERS.items():
+            if path == "orbit" and ("tolerance" in name):
+                continue
+            r = one(path, params, ref)
+            ref = r.pop("reference")
+            rows.append({"lever": name, **{k: r[k] for k in ("published", "zero_floor", "true_render",
+                         "margin_closed", "counts", "first_events", "publisher", "true_publisher")}})
+        out["levers"][path] = rows
+    for size in ((32, 32), (64, 64)) if quick else ((32, 32), (64, 64), (128, 128)):
+        for name in ("static reuse (default)", "baked 64"):
+            r = one("static", LEVERS[name], None, resolution=size)
+            r.pop("reference")
+            out["resolution"].append({"width": size[0], "height": size[1], "lever": name,
+                                      "rtf": r["publisher"]["rtf"], "psnr": r["published"]["psnr"],
+                                      "zero_floor": r["zero_floor"]["psnr"], "true_render": r["true_render"]["psnr"]})
+    return out
+
+
 def make_field_run(run_dir, *, half_empty=True):
     """A randomly initialised planes field saved as a run (checkpoint with box and occupancy)."""
     import torch
@@ -280,10 +349,13 @@ def main(argv=None):
     ap = arg_parser(__doc__, quick="smaller sweep (smoke test)")
     ap.add_argument("--dds-cpus", default="0,1", help="cores of the DDS writer,reader ('' = no pinning)")
     ap.add_argument("--note", default="", help="free text stored in the JSON (e.g. machine load)")
-    ap.add_argument("--only", choices=["resolution", "tolerance", "leave_out", "dds"], action="append")
+    ap.add_argument("--only", choices=["resolution", "tolerance", "leave_out", "dds", "published"], action="append")
+    ap.add_argument("--work", default="", help="folder for the published-vs-true run (kept; default: a temp folder)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads of the published-vs-true part (1: shared "
+                    "machine)")
     args = ap.parse_args(argv)
     cpus = args.dds_cpus.split(",") if args.dds_cpus else None
-    parts = args.only or ["resolution", "tolerance", "leave_out", "dds"]
+    parts = args.only or ["resolution", "tolerance", "leave_out", "dds", "published"]
     name = "publish_quick" if args.quick else "publish"
     result = read_results(args.out, name, missing_ok=True) if args.only else {}   # update only the parts run now
     result.update({"benchmark": "publish", "quick": args.quick, "note": args.note,
@@ -297,11 +369,38 @@ def main(argv=None):
             result["leave_out"] = bench_leave_out(tmp, args.quick)
     if "dds" in parts:
         result["dds_throughput"] = bench_dds(args.quick, cpus)
+    if "published" in parts:
+        with tempfile.TemporaryDirectory() as tmp:
+            result["published_vs_true"] = bench_published(Path(args.work or tmp), args.quick, args.threads)
     write_results(args.out, name, result, plot)
 
 
 def plot(result, path):
-    fig, ax = pyplot().subplots(1, 4, figsize=(21, 4.6))
+    pv = result.get("published_vs_true")
+    fig, ax = pyplot().subplots(1, 6 if pv else 4, figsize=(31 if pv else 21, 4.6))
+    if pv:
+        for path_name, mk in (("static", "o"), ("orbit", "s")):
+            rows = pv["levers"].get(path_name, [])
+            ax[4].plot([r["publisher"]["wall_s"] for r in rows], [r["published"]["psnr"] for r in rows], mk,
+                       label=f"{path_name} camera")
+            for r in rows:
+                ax[4].annotate(r["lever"], (r["publisher"]["wall_s"], r["published"]["psnr"]), fontsize=6)
+            if rows:
+                ax[4].axhline(rows[0]["zero_floor"]["psnr"], ls="--", lw=1, color="grey")
+                ax[4].axhline(rows[0]["true_render"]["psnr"], ls=":", lw=1, color="k")
+        ax[4].set_xscale("log")
+        ax[4].set_xlabel(f"publisher wall s for {pv['span_s']:g} s of events ({pv['threads']} thread)")
+        ax[4].set_ylabel("events PSNR vs true events (dB)")
+        ax[4].set_title("published vs true (dashed: all-zero floor, dotted: true render)")
+        ax[4].legend(fontsize=7)
+        for lever, mk in (("static reuse (default)", "o-"), ("baked 64", "s--")):
+            rows = [r for r in pv["resolution"] if r["lever"] == lever]
+            ax[5].plot([f"{r['width']}x{r['height']}" for r in rows], [r["rtf"] for r in rows], mk, label=lever)
+        ax[5].axhline(0.5, color="k", ls=":", lw=1)
+        ax[5].set_yscale("log")
+        ax[5].set_ylabel("real-time factor")
+        ax[5].set_title("trained field, static novel view: RTF vs resolution")
+        ax[5].legend(fontsize=7)
     rows = result.get("rtf_vs_resolution", [])
     if rows:
         ax[0].bar([f"{r['width']}x{r['height']}" for r in rows], [r["rtf"] for r in rows], color="tab:blue")

@@ -9,16 +9,17 @@ ROOT = Path(__file__).resolve().parents[1] / "evdnerf_ros"
 #: A module or package may import only what has a lower rank (and itself).
 RANK = {
     "errors": 0, "topics": 0, "__version__": 0,
-    "units": 1, "limits": 1, "atomic": 1, "renderer": 1,
+    "units": 1, "limits": 1, "atomic": 1, "renderer": 1, "device": 1,
     "events": 2, "geometry": 2,
     "io": 3,
     "yamlcheck": 4,
     "options": 5,
     "ros": 6, "field": 6, "session": 6,
     "sim": 7, "train": 7, "calib": 7,
-    "eval": 8,
-    "nodes": 9, "demo": 9,
-    "cli": 10, "__main__": 11,
+    "nodes": 8,
+    "eval": 9,                     # eval scores what the publisher node emits (eval.published)
+    "demo": 10,
+    "cli": 11, "__main__": 12,
 }
 #: Who may import the simulator: its own commands, the publisher (which simulates a scene) and
 #: evaluation (which scores the true scene of a simulated training set as its reference).

@@ -17,7 +17,7 @@ def _cmd_publish(args) -> int:
     overrides = {k: v for k, v in (
         ("scene", args.scene), ("run_dir", args.run), ("trajectory", args.trajectory),
         ("bag", args.output), ("encoding", args.encoding), ("duration", args.duration),
-        ("realtime_factor", args.realtime_factor)) if v is not None}
+        ("realtime_factor", args.realtime_factor), ("device", args.device)) if v is not None}
     if args.realtime_factor is None and not args.params_file:
         overrides["realtime_factor"] = 0.0     # a bag does not need real-time pace
     if args.resolution:
@@ -71,6 +71,8 @@ def register(sub) -> None:
     p.add_argument("--realtime-factor", type=number(float, low=0, high=1e6),
                    help="1 = real time, 0 = as fast as possible (default 0 here unless --params-file; "
                         "1 for event_publisher)")
+    p.add_argument("--device", type=str.lower, choices=["auto", "cpu", "cuda"],
+                   help="where a trained run's field is evaluated (default auto: cuda when available)")
     p.add_argument("-p", "--param", action="append", metavar="NAME=VALUE", help="any node parameter (repeatable)")
     p.add_argument("--params-file", help="ros__parameters YAML (as config/event_publisher.yaml)")
     p.add_argument("--json", action="store_true", help="print the run report as JSON")

@@ -27,9 +27,20 @@ def _cmd_train(args) -> int:
 def _cmd_eval(args) -> int:
     from ..eval.evaluate import run_eval
 
+    if args.published:
+        from ..eval.published import published_vs_true
+
+        result = published_vs_true(args.run, args.train_set, n_windows=args.windows or 32,
+                                    static=args.published == "static", publisher={"device": args.device},
+                                    log=(lambda *_: None) if args.json else print)
+        result.pop("reference")
+        if args.json:
+            print(json.dumps(result, indent=2))
+        return 0
+
     result = run_eval(args.run, args.train_set, n_windows=args.windows, max_views=args.max_views,
                       image_path=Path(args.run) / "eval_events.png",
-                      log=(lambda *_: None) if args.json else print)
+                      log=(lambda *_: None) if args.json else print, device=args.device)
     if args.json:
         print(json.dumps(result, indent=2))
     return 0
@@ -73,6 +84,11 @@ def register(sub) -> None:
     p.add_argument("--windows", type=number(int, low=1, high=100_000),
                    help="window count, 1..100000 (default: the trained one)")
     p.add_argument("--max-views", type=number(int, low=1), help="evaluate at most this many views per split")
+    p.add_argument("--device", default="auto", type=str.lower, choices=["auto", "cpu", "cuda"],
+                   help="where the field is evaluated: auto (cuda when available), cpu or cuda (default %(default)s)")
+    p.add_argument("--published", nargs="?", const="orbit", choices=["orbit", "static"],
+                   help="instead: publish from the run along its orbit (or a static novel view) and score the "
+                        "events against the simulator's along the same path (simulated training sets only)")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=_cmd_eval)
 

@@ -130,7 +130,7 @@ def intensity_renders(field, train_set, view, *, box, n_samples: int, near: floa
     for i in pick:
         tn = float(train_set.normalized_time(np.array([fr["t"][i]], np.int64))[0])
         grey, depth = (render_image(field, cam, T, tn, box, n_samples, near=near, far=far,
-                                    background=background, dynamic=dynamic, key=key).numpy()
+                                    background=background, dynamic=dynamic, key=key).cpu().numpy()
                        for key in ("grey", "depth"))
         frame = np.asarray(fr["frames"][i], np.float64)
         aligned, _, _ = brightness_align(np.clip(grey, 0, None), frame, space="log")
@@ -150,20 +150,23 @@ def moving_views(train_set, views) -> list[str]:
 
 
 def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int | None = None,
-             image_path=None, factors=(1, 4, 8), log=print) -> dict:
+             image_path=None, factors=(1, 4, 8), log=print, device="cpu") -> dict:
     """`evdnerf eval RUN TRAIN.h5`: events metrics on validation and training views at the
-    trained window count and 4x / 8x finer windows; GT vs prediction event images."""
+    trained window count and 4x / 8x finer windows; GT vs prediction event images.
+    ``device``: auto, cpu or cuda (``evdnerf_ros.device``): where the field is evaluated."""
     import torch
 
+    from ..device import resolve_device
     from ..io.trainingset import TrainingSet
     from ..train.run import TrainedRun
     from .figures import intensity_figure, side_by_side
 
+    dev = resolve_device(device, f"{run_dir}: device")
     run = TrainedRun.load(run_dir)
-    field, cfg, box, iteration, dynamic = run.field, run.config, run.box, run.iteration, run.dynamic
+    field, cfg, box, iteration, dynamic = run.field.to(dev), run.config, run.box, run.iteration, run.dynamic
     n = int(n_windows or cfg.windows[-1])
     result = {"run": str(run_dir), "train_set": str(train_h5), "iteration": iteration,
-              "trained_windows": n, "lpips": None,
+              "trained_windows": n, "device": str(dev), "lpips": None,
               "lpips_note": "not computed: LPIPS needs AlexNet weights, which cannot be downloaded here"}
     with TrainingSet(train_h5) as ts, torch.no_grad():
         truth, why = TrueScene.of(ts)

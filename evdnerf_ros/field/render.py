@@ -173,7 +173,9 @@ def render_image(field: DynamicField, camera, T_world_cam, t_norm, box,
     """
     multi = isinstance(t_norm, (list, tuple))
     times = list(t_norm) if multi else [t_norm]
-    o, d = camera_rays(camera, T_world_cam)
+    from ..device import module_device
+
+    o, d = camera_rays(camera, T_world_cam, device=module_device(field))     # the field's device
     parts: list[list[torch.Tensor]] = [[] for _ in times]
     with torch.set_grad_enabled(with_grad):
         for s in range(0, o.shape[0], chunk):

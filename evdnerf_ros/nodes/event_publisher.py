@@ -11,6 +11,12 @@ With ``realtime_factor`` > 0 each chunk is published when the wall clock reaches
 (divided by the factor); 0 runs as fast as possible. The node logs its real-time factor
 (trajectory seconds per wall second).
 
+On DDS the node is a ROS 2 graph member (``ros2 node list``, ``/rosout``) with parameter
+services: the thresholds and noise (``c_pos``, ``c_neg``, ``threshold_sigma``,
+``refractory_ns``, ``shot_noise_hz``, ``leak_rate_hz``) change live with ``ros2 param set``;
+the others refuse with the reason. It also publishes the robot pose on ``/tf``, the
+extrinsics on ``/tf_static`` and, when not real time, trajectory time on ``/clock``.
+
 Executable: ``event_publisher --ros-args -p scene:=fork -p trajectory:=traj.yaml ...``;
 ``evdnerf publish`` runs the same node without DDS (bag only) unless ``--dds``.
 """
@@ -55,12 +61,13 @@ PARAMETERS = [
     Param("camera.fov_deg", 0.0, "horizontal field of view (0: the scene's; 40 for a trained run)", min=0.0, max=179.0),
     Param("camera.K", [], "pinhole intrinsics [fx, fy, cx, cy] in pixels; overrides fov_deg", type=list),
     Param("supersample", 1, "s x s rays per pixel of the synthetic renderer", min=1, max=8),
-    Param("c_pos", DEFAULT_THRESHOLD, "ON contrast threshold (log units)", min=1e-4),
-    Param("c_neg", DEFAULT_THRESHOLD, "OFF contrast threshold (log units)", min=1e-4),
-    Param("threshold_sigma", 0.0, "per-pixel threshold mismatch (std, log units)", min=0.0),
-    Param("refractory_ns", 0, "refractory period (ns)", min=0),
-    Param("shot_noise_hz", 0.0, "shot-noise events per pixel per second", min=0.0),
-    Param("leak_rate_hz", 0.0, "leak events per pixel per second", min=0.0),
+    # dynamic: `ros2 param set` changes these while the node runs (applied at the next chunk)
+    Param("c_pos", DEFAULT_THRESHOLD, "ON contrast threshold (log units)", min=1e-4, dynamic=True),
+    Param("c_neg", DEFAULT_THRESHOLD, "OFF contrast threshold (log units)", min=1e-4, dynamic=True),
+    Param("threshold_sigma", 0.0, "per-pixel threshold mismatch (std, log units)", min=0.0, dynamic=True),
+    Param("refractory_ns", 0, "refractory period (ns)", min=0, dynamic=True),
+    Param("shot_noise_hz", 0.0, "shot-noise events per pixel per second", min=0.0, dynamic=True),
+    Param("leak_rate_hz", 0.0, "leak events per pixel per second", min=0.0, dynamic=True),
     Param("seed", 0, "seed of every random draw (noise, mismatch)", min=0),
     Param("adaptive", True, "adaptive time sampling (skip steps where nothing moves); false: fixed render_rate_hz"),
     Param("tolerance_c", 0.1, "adaptive sampling: allowed midpoint deviation from linear, in units of C", min=1e-6),
@@ -69,6 +76,14 @@ PARAMETERS = [
     Param("render_rate_hz", 1000.0, "fixed sampling rate when adaptive is false", min=1e-3),
     Param("leave_out", True, "render only pixels whose rays can hit something (scene primitives' screen boxes / the "
       "field's occupancy grid)"),
+    Param("reuse_static", True, "trained field, static camera: render the rays and samples outside the run's dynamic "
+      "region once and per time only the dynamic samples (same events; false: every sample at every render)"),
+    Param("bake_resolution", 0, "trained field: play back the field baked into a grid of this many vertices per axis "
+      "(an approximation: faster, slightly different events; 0: the field itself)", min=0, max=512),
+    Param("bake_times", 0, "trained field, baked: frames over the field's time 0..1 (0: 4 per time texel)", min=0,
+      max=4096),
+    Param("device", "auto", "where a trained field is evaluated: auto (cuda when available), cpu or cuda",
+      choices=("auto", "cpu", "cuda"), read_only=True),
     Param("encoding", "evt3", "event message: evt3, evt2 or mono EventPacket, or array (dvs_msgs/EventArray)",
       choices=("evt3", "evt2", "mono", "array")),
     Param("packet_ns", 1_000_000, "longest time span of one event message (ns)", min=1),
@@ -83,6 +98,12 @@ PARAMETERS = [
     Param("bag_storage", "mcap", "rosbag2 storage of the bag", choices=("mcap", "sqlite3"), read_only=True),
     Param("wait_for_subscribers", 0, "wait until this many subscribers match ~/events before starting", min=0),
     Param("wait_timeout", 10.0, "seconds to wait for subscribers", min=0.0, max=MAX_SECONDS),
+    Param("publish_tf", True, "with DDS: the robot pose on /tf (world_frame -> robot_frame, every chunk) and the "
+      "extrinsics on /tf_static (robot_frame -> frame_id)"),
+    Param("world_frame", "world", "parent frame of the robot pose on /tf"),
+    Param("robot_frame", "base_link", "the robot's frame on /tf and /tf_static"),
+    Param("publish_clock", "auto", "with DDS: trajectory time on /clock every chunk, for nodes run with "
+      "use_sim_time:=true (auto: when realtime_factor is not 1)", choices=("auto", "true", "false")),
 ]
 
 
@@ -98,6 +119,8 @@ class PublishReport:
     frames_fed: int = 0
     rays_total: int = 0          # render work without leave-out (scene: ray-primitive tests; field: rays)
     rays_rendered: int = 0       # render work done (same unit)
+    samples_total: int = 0       # trained field: field evaluations of a full render of every traced ray per call
+    samples_evaluated: int = 0   # trained field: field evaluations done (static-camera reuse, baking)
     interrupted: bool = False
     rtf: float = 0.0
     topics: dict = field(default_factory=dict)
@@ -140,6 +163,17 @@ class EventPublisher(Node):
         self.events_pub = self.create_publisher("~/events", "dvs_msgs/msg/EventArray" if p["encoding"] == "array"
                                                 else "event_camera_msgs/msg/EventPacket", p["qos"])
         self.info_pub = self.create_publisher("~/camera_info", "sensor_msgs/msg/CameraInfo", p["qos"])
+        self._tf_pubs = self._clock_pub = None
+        if self.dds is not None:
+            from ..ros import tf as _tf
+
+            if p["publish_tf"]:
+                self._tf_pubs = (self.create_publisher("/tf", _tf.TF_TYPE, _tf.TF_QOS),
+                                 self.create_publisher("/tf_static", _tf.TF_TYPE, _tf.TF_STATIC_QOS))
+            if p["publish_clock"] == "true" or (p["publish_clock"] == "auto" and p["realtime_factor"] != 1.0):
+                self._clock_pub = self.create_publisher("/clock", _tf.CLOCK_TYPE, _tf.CLOCK_QOS)
+        self._live: dict = {}          # dynamic parameters set while running, applied at the next chunk
+        self.params.listeners.append(self._live.update)
         if p["bag"]:
             self.record_to(p["bag"], storage=p["bag_storage"])
         self.report = PublishReport()
@@ -218,7 +252,9 @@ class EventPublisher(Node):
         if self.scene is not None:
             return SceneSource(self.scene, self.camera, supersample=p["supersample"], leave_out=p["leave_out"])
         duration = int(round(p["field_duration"] * NS)) or (self.t1 - self.t0)
-        return FieldSource(self._run(), self.camera, duration_ns=duration, leave_out=p["leave_out"])
+        return FieldSource(self._run(), self.camera, duration_ns=duration, leave_out=p["leave_out"],
+                           reuse_static=p["reuse_static"], bake_resolution=p["bake_resolution"],
+                           bake_times=p["bake_times"], device=p["device"])
 
     def camera_pose(self, t_ns: int) -> np.ndarray:
         return self.track(t_ns) @ self.T_robot_cam
@@ -236,6 +272,49 @@ class EventPublisher(Node):
                           stamp_ns=stamp_ns)
         self.info_pub.publish_raw(ros2_typestore().serialize_cdr(msg, self.info_pub.msgtype), stamp_ns)
 
+    def _publish_tf_static(self, stamp_ns: int) -> None:
+        if self._tf_pubs is not None:
+            from ..ros import tf as _tf
+
+            p = self.params
+            self._tf_pubs[1].publish_raw(_tf.tf_message([_tf.transform_stamped(
+                self.T_robot_cam, p["robot_frame"], p["frame_id"], stamp_ns)]), stamp_ns)
+
+    def _publish_tf_clock(self, t_ns: int) -> None:
+        from ..ros import tf as _tf
+
+        if self._clock_pub is not None:
+            self._clock_pub.publish_raw(_tf.clock_message(t_ns), t_ns)
+        if self._tf_pubs is not None:
+            p = self.params
+            self._tf_pubs[0].publish_raw(_tf.tf_message([_tf.transform_stamped(
+                self.track(t_ns), p["world_frame"], p["robot_frame"], t_ns)]), t_ns)
+
+    def _apply_live(self, t_ns: int) -> None:
+        """Apply dynamic parameters set since the last chunk. Noise rates and the refractory
+        period change in place; new thresholds start a generator with them from the current
+        log image (every pixel re-armed at t_ns, as a sensor after a bias change)."""
+        if not self._live:
+            return
+        changes = {}
+        while self._live:        # popitem is atomic: a set arriving meanwhile waits for the next chunk
+            k, v = self._live.popitem()
+            changes[k] = v
+        g, p = self.generator, self.params
+        if {"c_pos", "c_neg", "threshold_sigma"} & changes.keys():
+            from ..sim.generator import EventGenerator
+
+            new = EventGenerator(g.width, g.height, c_pos=p["c_pos"], c_neg=p["c_neg"],
+                                 threshold_sigma=p["threshold_sigma"], refractory_ns=p["refractory_ns"],
+                                 shot_noise_rate_hz=p["shot_noise_hz"], leak_rate_hz=p["leak_rate_hz"], seed=p["seed"])
+            if g.initialized:
+                new.reset_log(g.last_log(), g.t_ns)
+            self.generator = g = new
+        g.refractory_ns = int(p["refractory_ns"])
+        g.shot_noise_rate_hz = float(p["shot_noise_hz"])
+        g.leak_rate_hz = float(p["leak_rate_hz"])
+        self.logger.info(f"applied at t = {(t_ns - self.t0) / NS:.3f} s: {changes}")
+
     def _wait_for_subscribers(self, n: int, timeout_s: float) -> None:
         pub = self.events_pub
         deadline = time.monotonic() + timeout_s
@@ -246,7 +325,9 @@ class EventPublisher(Node):
                                  "publishing anyway")
                 return
 
-    def run(self) -> PublishReport:
+    def run(self, on_events=None) -> PublishReport:
+        """Publish the whole span; ``on_events(events)`` (optional) also gets every chunk's events
+        as published (evt encodings: quantised to whole microseconds)."""
         from ..events.codecs import quantize_to_us
         from ..io.packetizer import Packetizer
         from ..sim.sampling import simulate_renderer
@@ -273,8 +354,11 @@ class EventPublisher(Node):
         next_info = self.t0
         info_subs = 0
         t = self.t0
+        self._publish_tf_static(self.t0)
         while t < self.t1 and self.ok():
             tb = min(t + chunk, self.t1)
+            self._apply_live(t)
+            self._publish_tf_clock(t)
             subs = self.info_pub.subscribers()
             if t >= next_info or subs > info_subs:     # periodically, and at once for a new subscriber
                 self._camera_info(t)
@@ -291,6 +375,8 @@ class EventPublisher(Node):
             rep.frames_fed += st.frames_fed
             if factor > 0:
                 self.sleep(wall0 + (tb - self.t0) / NS / factor - time.perf_counter())
+            if on_events is not None:
+                on_events(events)
             rep.messages += encoder.write_events(self.events_pub.topic, events, width=self.camera.width,
                                                  height=self.camera.height, encoding=p["encoding"],
                                                  packet_ns=p["packet_ns"], frame_id=p["frame_id"])
@@ -309,6 +395,8 @@ class EventPublisher(Node):
         rep.bytes = self.events_pub.bytes
         rep.rays_total = self.source.rays_total
         rep.rays_rendered = self.source.rays_rendered
+        rep.samples_total = int(getattr(self.source, "samples_total", 0))
+        rep.samples_evaluated = int(getattr(self.source, "samples_evaluated", 0))
         rep.topics = {pub.topic: pub.messages for pub in self.publishers.values()}
         self.check_qos()
         self.logger.info(f"{'stopped' if rep.interrupted else 'done'}: {rep.sim_seconds:.3f} s of events in "

@@ -1,7 +1,8 @@
 """ROS-like console logging: ``[INFO] [1700000000.123456789] [event_publisher]: message``.
 
 Levels debug < info < warn < error < fatal; the threshold comes from ``--log-level``.
-Lines go to stderr, as rcutils' console output does by default.
+Lines go to stderr, as rcutils' console output does by default, and to every callable
+in ``sinks`` (a node on DDS adds its ``/rosout`` publisher there).
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ class RosLogger:
         self.level = level
         self.stream = stream
         self._lock = threading.Lock()
+        #: callables (level, msg, stamp_ns) also given every line logged (e.g. /rosout)
+        self.sinks: list = []
 
     @property
     def level(self) -> str:
@@ -34,12 +37,15 @@ class RosLogger:
     def log(self, level: str, msg: str) -> None:
         if not self.enabled(level):
             return
-        sec, nsec = divmod(time.time_ns(), 1_000_000_000)
+        stamp = time.time_ns()
+        sec, nsec = divmod(stamp, 1_000_000_000)
         line = f"[{level.upper()}] [{sec}.{nsec:09d}] [{self.name}]: {msg}\n"
         stream = self.stream or sys.stderr
         with self._lock:
             stream.write(line)
             stream.flush()
+        for sink in list(self.sinks):
+            sink(level, msg, stamp)
 
     def debug(self, msg: str) -> None:
         self.log("debug", msg)

@@ -57,7 +57,8 @@ class Node:
     PARAMETERS: list[ParameterSpec] = []
 
     def __init__(self, argv=(), *, name: str | None = None, namespace: str = "/", overrides=None,
-                 dds: bool = True, domain_id: int | None = None, dds_config: str | None = None, log_stream=None):
+                 dds: bool = True, domain_id: int | None = None, dds_config: str | None = None, log_stream=None,
+                 rmw: str | None = None):
         default_name = validate_node_name(name or self.NAME)
         ros, rest = parse_ros_args(list(argv), default_name)
         if rest:
@@ -76,16 +77,22 @@ class Node:
         if unknown:
             self.logger.warn(f"ignoring parameters this node does not declare: {sorted(set(unknown))}")
         self._dds = None
-        if dds:
-            from .transport import DdsContext
+        if dds:  # DDS, or Zenoh when RMW_IMPLEMENTATION=rmw_zenoh_cpp / rmw="rmw_zenoh_cpp" (zenoh_transport)
+            from .zenoh_transport import open_transport
 
-            self._dds = DdsContext(domain_id, config=dds_config)
+            self._dds = open_transport(self, domain_id, dds_config, rmw)
         self.bag: BagSink | None = None
         self.publishers: dict[str, Publisher] = {}
         self._subs = []
         self._stop = threading.Event()
         self._old_handlers = {}
         self._closed = False
+        #: graph entry, /rosout and parameter services when on DDS (graph.attach); None otherwise
+        self.ros = None
+        if self._dds is not None:
+            from .graph import attach
+
+            self.ros = attach(self)
 
     # ----- names, endpoints
     def resolve(self, name: str) -> str:
@@ -106,9 +113,10 @@ class Node:
             raise InputError(f"{self.name}: topic {full} already has a publisher in this node")
         dds_pub = None
         if self._dds is not None:
-            from .transport import DdsPublisher
+            from .zenoh_transport import endpoint_classes
 
-            dds_pub = DdsPublisher(self._dds, full, msgtype, qos_profile(qos), fast=fast, log=self.logger.log)
+            pub_cls = endpoint_classes(self._dds)[0]
+            dds_pub = pub_cls(self._dds, full, msgtype, qos_profile(qos), fast=fast, log=self.logger.log)
         pub = self.publishers[full] = Publisher(self, full, msgtype, dds_pub)
         if self.bag is not None:
             self.bag.add_topic(full, msgtype)
@@ -118,10 +126,11 @@ class Node:
                             fast: bool = True):
         if self._dds is None:
             raise InputError(f"{self.name}: subscriptions need DDS (this node runs without it)")
-        from .transport import DdsSubscription
+        from .zenoh_transport import endpoint_classes
 
-        sub = DdsSubscription(self._dds, self.resolve(topic), msgtype, qos_profile(qos, depth), fast=fast,
-                              log=self.logger.log)
+        sub_cls = endpoint_classes(self._dds)[1]
+        sub = sub_cls(self._dds, self.resolve(topic), msgtype, qos_profile(qos, depth), fast=fast,
+                      log=self.logger.log)
         self._subs.append(sub)
         return sub
 
@@ -180,6 +189,8 @@ class Node:
                 if p.dds is not None and p.dds.qos.reliability == "reliable" and p.subscribers():
                     p.dds.wait_for_acks(1.0)
         finally:
+            if self.ros is not None:
+                self.ros.close()
             if self._dds is not None:
                 self._dds.close()
             for sig, old in self._old_handlers.items():

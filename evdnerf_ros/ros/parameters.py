@@ -31,6 +31,7 @@ class ParameterSpec:
     description: str
     type: type | None = None         # default: type(default); list means list of numbers/strings
     read_only: bool = False          # only settable at start-up (files, -p), as ROS read_only
+    dynamic: bool = False            # may change while the node runs (ros2 param set) and takes effect live
     min: float | None = None
     max: float | None = None
     choices: tuple | None = None
@@ -38,6 +39,14 @@ class ParameterSpec:
     @property
     def kind(self) -> type:
         return self.type or type(self.default)
+
+    @property
+    def ros_type(self) -> int:
+        """rcl_interfaces/msg/ParameterType of this parameter (lists: double or string arrays)."""
+        kind = self.kind
+        if kind is list:
+            return 9 if any(isinstance(v, str) for v in self.default) else 8
+        return {bool: 1, int: 2, float: 3, str: 4}[kind]
 
     def type_name(self) -> str:
         return {bool: "bool", int: "integer", float: "double", str: "string", list: "array"}[self.kind]
@@ -116,11 +125,71 @@ class Parameters:
     """Declared parameters with their current values (``params["name"]`` or ``params.name``)."""
 
     def __init__(self, specs):
+        import threading
+
         self._specs: dict[str, ParameterSpec] = {}
         self._values: dict[str, Any] = {}
         self._sources: dict[str, str] = {}
+        self._lock = threading.RLock()
+        #: callables(changes: dict) -> None or a reason to refuse the whole set (run before applying)
+        self.validators: list = []
+        #: callables(changes: dict) called after a run-time set was applied (in the setter's thread)
+        self.listeners: list = []
         for s in specs:
             self.declare(s)
+
+    def check_runtime(self, name: str, value, source: str):
+        """The value `name` would take from a run-time set; raises InputError with the reason."""
+        spec = self._specs.get(name)
+        if spec is None:
+            raise InputError(f"parameter {name!r} is not declared by this node")
+        if spec.read_only or not spec.dynamic:
+            raise InputError(f"parameter {name!r} is read-only while the node runs; set it at start-up "
+                             f"(--ros-args -p {name}:=VALUE or a --params-file)")
+        return spec.coerce(value, source)
+
+    def set_runtime(self, values: list[tuple[str, Any]], source: str, *, atomically: bool = False) -> list:
+        """Set parameters while the node runs (the parameter services). Returns one reason per
+        value (None: applied). ``atomically``: all or none (one reason for all on failure).
+        Without it each value is checked and applied on its own, as ROS 2's set_parameters."""
+        with self._lock:
+            reasons: list = []
+            checked: dict[str, Any] = {}
+            for name, value in values:
+                try:
+                    checked[name] = self.check_runtime(name, value, source)
+                    reasons.append(None)
+                except InputError as exc:
+                    reasons.append(str(exc))
+            if atomically:
+                bad = next((r for r in reasons if r), None)
+                if bad is None:
+                    bad = self._validate(checked)
+                if bad is not None:
+                    return [bad] * len(values)
+                self._commit(checked, source)
+                return reasons
+            for i, (name, _) in enumerate(values):
+                if reasons[i] is None:
+                    one = {name: checked[name]}
+                    reasons[i] = self._validate(one)
+                    if reasons[i] is None:
+                        self._commit(one, source)
+            return reasons
+
+    def _validate(self, changes: dict):
+        for check in self.validators:
+            reason = check(dict(changes))
+            if reason:
+                return reason
+        return None
+
+    def _commit(self, changes: dict, source: str) -> None:
+        for name, value in changes.items():
+            self._values[name] = value
+            self._sources[name] = source
+        for listener in list(self.listeners):
+            listener(dict(changes))
 
     def declare(self, spec: ParameterSpec) -> None:
         if spec.name in self._specs:

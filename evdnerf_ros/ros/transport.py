@@ -32,6 +32,20 @@ class TransportError(EvdnerfError):
     """The DDS layer failed (library missing, domain could not start, write failed)."""
 
 
+#: Participant USER_DATA of ROS 2 Iron and later (rmw_cyclonedds / rmw_fastrtps): the security enclave.
+ENCLAVE_USER_DATA = b"enclave=/;"
+
+
+def endpoint_qos(profile, type_hash: str | None):
+    """Cyclone QoS of a ROS profile plus the endpoint USER_DATA ``typehash=RIHS01_...;`` (Iron and later)."""
+    from cyclonedds.qos import Policy, Qos
+
+    q = profile.to_cyclone()
+    if not type_hash:
+        return q
+    return Qos(*q, Policy.Userdata(f"typehash={type_hash};".encode()))
+
+
 def _clayer():
     try:
         from cyclonedds._clayer import ddspy_take, ddspy_write
@@ -69,23 +83,41 @@ class DdsContext:
         self.domain_id = _qos.domain_id(env) if domain_id is None else int(domain_id)
         self.config = _qos.domain_config(env) if config is None else config
         try:
+            from cyclonedds.qos import Policy, Qos
+
             self._domain = _domain(Domain, self.domain_id, self.config) if self.config else None
-            self.participant = DomainParticipant(self.domain_id)
+            # participant USER_DATA "enclave=/;": how Iron and later tell ROS participants apart
+            self.participant = DomainParticipant(self.domain_id, qos=Qos(Policy.Userdata(ENCLAVE_USER_DATA)))
         except Exception as exc:  # noqa: BLE001 - DDSException and friends
             raise TransportError(f"DDS domain {self.domain_id} did not start: {exc}") from None
+        self._gid = self.participant.guid.bytes
         self._topics: dict[str, object] = {}
+        #: called with (kind "reader"/"writer", 16-byte GID) for every endpoint created (graph bookkeeping)
+        self.on_endpoint = None
 
-    def topic(self, full: str, msgtype: str):
+    @property
+    def gid(self) -> bytes:
+        """The participant's 16-byte GID (its DDS GUID), as rmw_dds_common/msg/Gid carries it."""
+        return self._gid
+
+    def topic(self, full: str, msgtype: str, *, dds_name: str | None = None, idl=None):
+        """The DDS topic of ROS topic `full` (``dds_name``: a DDS name used as is, e.g.
+        ``ros_discovery_info`` or ``rq/...Request``; ``idl``: the IdlStruct, default from msgtype)."""
         from cyclonedds.topic import Topic
 
-        have = self._topics.get(full)
+        key = dds_name or full
+        have = self._topics.get(key)
         if have is not None:
             if have[1] != msgtype:
                 raise InputError(f"topic {full} already carries {have[1]} in this process; cannot also use {msgtype}")
             return have[0]
-        top = Topic(self.participant, dds_topic(full), idl_type(msgtype))
-        self._topics[full] = (top, msgtype)
+        top = Topic(self.participant, dds_name or dds_topic(full), idl if idl is not None else idl_type(msgtype))
+        self._topics[key] = (top, msgtype)
         return top
+
+    def _endpoint_created(self, kind: str, gid: bytes) -> None:
+        if self.on_endpoint is not None:
+            self.on_endpoint(kind, gid)
 
     def close(self):
         self._topics.clear()
@@ -93,11 +125,21 @@ class DdsContext:
         self._domain = None
 
 
+def _type_hash(msgtype: str) -> str | None:
+    from .rostypes import type_hash
+
+    try:
+        return type_hash(msgtype)
+    except EvdnerfError:
+        return None
+
+
 class _Endpoint:
     def __init__(self, full, msgtype, profile, log):
         self.topic = full
         self.msgtype = msgtype
         self.qos = _qos.profile(profile)
+        self.gid = b""
         self._log = log or (lambda level, msg: None)
         self._warned = 0
         #: how the user changes this endpoint's QoS (a command's own flag); None: the generic hint
@@ -117,13 +159,17 @@ class _Endpoint:
 
 
 class DdsPublisher(_Endpoint):
-    def __init__(self, ctx: DdsContext, full: str, msgtype: str, profile="default", *, fast: bool = True, log=None):
+    def __init__(self, ctx: DdsContext, full: str, msgtype: str, profile="default", *, fast: bool = True, log=None,
+                 dds_name: str | None = None, idl=None, type_hash: str | None = None):
         from cyclonedds.pub import DataWriter
 
         super().__init__(full, msgtype, profile, log)
         self.fast = fast
         self._write, _ = _clayer()
-        self.writer = DataWriter(ctx.participant, ctx.topic(full, msgtype), self.qos.to_cyclone())
+        self.writer = DataWriter(ctx.participant, ctx.topic(full, msgtype, dds_name=dds_name, idl=idl),
+                                 endpoint_qos(self.qos, type_hash or _type_hash(msgtype)))
+        self.gid = self.writer.guid.bytes
+        ctx._endpoint_created("writer", self.gid)
         self._ts = ros2_typestore()
         self.bytes_sent = 0
         self.messages_sent = 0
@@ -171,14 +217,18 @@ class DdsPublisher(_Endpoint):
 
 
 class DdsSubscription(_Endpoint):
-    def __init__(self, ctx: DdsContext, full: str, msgtype: str, profile="default", *, fast: bool = True, log=None):
+    def __init__(self, ctx: DdsContext, full: str, msgtype: str, profile="default", *, fast: bool = True, log=None,
+                 dds_name: str | None = None, idl=None, type_hash: str | None = None):
         from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
         from cyclonedds.sub import DataReader
 
         super().__init__(full, msgtype, profile, log)
         self.fast = fast
         _, self._take = _clayer()
-        self.reader = DataReader(ctx.participant, ctx.topic(full, msgtype), self.qos.to_cyclone())
+        self.reader = DataReader(ctx.participant, ctx.topic(full, msgtype, dds_name=dds_name, idl=idl),
+                                 endpoint_qos(self.qos, type_hash or _type_hash(msgtype)))
+        self.gid = self.reader.guid.bytes
+        ctx._endpoint_created("reader", self.gid)
         self._mask = SampleState.Any | ViewState.Any | InstanceState.Any
         self._waitset = WaitSet(ctx.participant)
         self._cond = ReadCondition(self.reader, self._mask)

@@ -140,6 +140,10 @@ class TrainConfig:
     lr_warmup_iters: int = 100
     """Linear LR warm-up from ``lr_warmup_start`` x lr over this many iterations (paper: 1k)."""
     lr_warmup_start: float = 0.1
+    lr_final: float = 1.0
+    """Learning rate at the end of the run as a fraction of ``lr``: after the warm-up it
+    decays exponentially with run progress (iterations, or training seconds with a
+    ``minutes`` budget) from lr to lr_final x lr; 1 keeps it constant."""
     grad_clip: float = 1.0
     """Max global gradient norm; 0 disables clipping."""
     max_nonfinite_steps: int = 20

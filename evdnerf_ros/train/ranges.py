@@ -56,6 +56,7 @@ NUMBERS = {
     "lr": (0.0, 1e3, "float", True),
     "lr_warmup_iters": (0, BIG, "int", False),
     "lr_warmup_start": (0.0, 1.0, "float", False),
+    "lr_final": (0.0, 1.0, "float", True),
     "grad_clip": (0.0, 1e12, "float", False),
     "max_nonfinite_steps": (0, BIG, "int", False),
     "seed": (0, 2 ** 63 - 2, "int", False),

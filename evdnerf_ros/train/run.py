@@ -193,10 +193,16 @@ class TrainedRun:
         return t, T
 
     def renderer(self, camera, *, duration_ns: int | None = None, t_origin_ns: int = 0,
-                 leave_out: bool = True, chunk: int = 16384):
+                 leave_out: bool = True, reuse_static: bool = True, bake_resolution: int = 0,
+                 bake_times: int = 0, chunk: int = 16384, device="cpu"):
         """The field as a Renderer through ``camera``.  Scene time ``t_origin_ns`` ..
         ``t_origin_ns + duration_ns`` spans the field's time 0..1; ``duration_ns`` None: the
-        training set's span (an error for checkpoints that do not record it)."""
+        training set's span (an error for checkpoints that do not record it).  The run's
+        dynamic region is applied as in training.  ``leave_out`` / ``reuse_static``: the
+        renderer's savings (``field.renderer``); ``bake_resolution`` > 0 plays back the field
+        baked into a grid of that many vertices per axis and ``bake_times`` frames (0: auto;
+        ``field.baked``); ``device``: auto, cpu or cuda (``evdnerf_ros.device``)."""
+        from ..device import resolve_device
         from ..field.renderer import FieldRenderer
 
         if duration_ns is None:
@@ -205,10 +211,18 @@ class TrainedRun:
                                  "span; give the span the field's time 0..1 covers (field_duration)")
             duration_ns = self.time_range_ns[1] - self.time_range_ns[0]
         cfg = self.config
-        return FieldRenderer(self.field, camera, self.box, duration_ns=duration_ns,
+        dev = resolve_device(device, f"{self.run_dir}: device")
+        field = self.field.to(dev)
+        if int(bake_resolution) > 0:
+            from ..field.baked import BakedField
+
+            field = BakedField.bake(field, resolution=int(bake_resolution), times=int(bake_times),
+                                    dynamic=self.dynamic, device=dev)
+        return FieldRenderer(field, camera, self.box, duration_ns=duration_ns,
                              t_origin_ns=t_origin_ns, n_samples=cfg.n_samples, near=cfg.near,
                              far=cfg.far, background=cfg.background, occupancy=self.occupancy,
-                             leave_out=leave_out, chunk=chunk, source=str(self.run_dir))
+                             dynamic=self.dynamic, leave_out=leave_out, reuse_static=reuse_static,
+                             chunk=chunk, device=dev, source=str(self.run_dir))
 
     def __repr__(self) -> str:
         return (f"TrainedRun({str(self.run_dir)!r}, iteration={self.iteration}, "

@@ -160,11 +160,15 @@ class Trainer:
         return max(min(cfg.time_curriculum_min, n), int(math.ceil(p / cfg.time_curriculum * n)))
 
     def lr(self) -> float:
+        """Linear warm-up over ``lr_warmup_iters``, then exponential decay with run progress
+        to ``lr_final`` x lr at the end of the budget."""
         cfg = self.cfg
-        if cfg.lr_warmup_iters <= 0 or self.iteration >= cfg.lr_warmup_iters:
+        if cfg.lr_warmup_iters > 0 and self.iteration < cfg.lr_warmup_iters:
+            f = cfg.lr_warmup_start + (1.0 - cfg.lr_warmup_start) * self.iteration / cfg.lr_warmup_iters
+            return cfg.lr * f
+        if cfg.lr_final >= 1.0:
             return cfg.lr
-        f = cfg.lr_warmup_start + (1.0 - cfg.lr_warmup_start) * self.iteration / cfg.lr_warmup_iters
-        return cfg.lr * f
+        return cfg.lr * cfg.lr_final ** min(1.0, max(0.0, self.progress()))
 
     def done(self) -> bool:
         if self.iters is not None and self.iteration >= self.iters:

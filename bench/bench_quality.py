@@ -1,0 +1,252 @@
+"""Benchmark of training quality levers: fraction of the floor-to-truth margin closed against wall time.
+
+Each lever is one change of the training config against the same baseline, trained for the
+same wall-clock budget on the same simulated Jet-Down training set, each run in its own
+process with the same torch thread count.  Every run logs, every ``eval_every`` iterations,
+validation events-PSNR at 32 windows (the paper's protocol windows) on the first
+``--eval-views`` validation views, its all-zero floor and the true scene's score, hence the
+fraction of the floor-to-truth margin closed (``evdnerf_ros.eval.truth.margin_closed``).  At
+the end each run is scored at 32 windows and at 4x / 8x finer windows (128, 256).
+
+Proxy (default): Jet-Down 64x64, 12 training + 4 validation views, 90 s per lever, 1 torch
+thread per run; ``--parallel 2`` runs two levers at a time (one core each).  ``--full``: the
+issue's setting, Jet-Down 128x128, 18 + 18 views, 5 minutes per run, for the baseline and
+the chosen combination.
+
+Usage: python bench/bench_quality.py [--full] [--levers a,b,...] [--seconds S] [--parallel N]
+       [--replot]   -> bench/results/quality_proxy.{json,png} or quality.{json,png}
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from _common import arg_parser, load_average, machine, pyplot, read_results, save_figure, write_results
+
+#: The baseline every lever is compared with: the training defaults (eval cadence aside).
+BASE = {"eval_every": 100, "checkpoint_every": 0, "log_every": 100}
+
+#: lever name -> config changes against BASE.
+LEVERS = {
+    "baseline": {},
+    "time-res-32": {"field": {"time_resolution": 32}},
+    "time-res-64": {"field": {"time_resolution": 64}},
+    "lr-decay-0.1": {"lr_final": 0.1},
+    "no-event-hinge": {"no_event_weight": 1.0},
+    "time-l1-smooth": {"time_l1_weight": 1e-4, "time_smooth_weight": 1e-3},
+    "samples-32": {"n_samples": 32},
+    "rays-512": {"rays": 512},
+    "rays-256": {"rays": 256},
+    "background-0.25": {"background": 0.25},
+    "samples-24": {"n_samples": 24},
+    "rays-256+windows-32": {"rays": 256, "windows": [32], "window_switch": []},
+    "rays-256+windows-32+background": {"rays": 256, "windows": [32], "window_switch": [],
+                                       "background": 0.25},
+    "rays-256+windows-32+background+time-l1": {"rays": 256, "windows": [32], "window_switch": [],
+                                               "background": 0.25, "time_l1_weight": 1e-3},
+    "rays-256+windows-32+background+lr-decay": {"rays": 256, "windows": [32], "window_switch": [],
+                                                "background": 0.25, "lr_final": 0.1},
+    "rays-128+windows-32+background": {"rays": 128, "windows": [32], "window_switch": [],
+                                       "background": 0.25},
+    "event-rays-0.25": {"event_ray_fraction": 0.25},
+    "event-rays-0": {"event_ray_fraction": 0.0},
+    "windows-32": {"windows": [32], "window_switch": []},
+    "space-res-128": {"field": {"resolutions": [16, 32, 64, 128]}},
+}
+
+PROXY = {"views": 12, "val_views": 4, "resolution": 64, "seconds": 90.0, "threads": 1,
+         "eval_views": 4, "final_views": {1: 4, 4: 2, 8: 2}}
+FULL = {"views": 18, "val_views": 18, "resolution": 128, "seconds": 300.0, "threads": 1,
+        "eval_views": 4, "final_views": {1: 4, 4: 4, 8: 4}}
+
+
+def build_set(work: Path, setting: dict) -> Path:
+    from evdnerf_ros.session.convert import run_convert
+    from evdnerf_ros.sim.simulate import SimulationOptions, simulate_session
+
+    n, nv, res = setting["views"], setting["val_views"], setting["resolution"]
+    out = work / f"jet-down-{res}-{n}+{nv}.h5"
+    if out.exists():
+        return out
+    t = time.perf_counter()
+    session = work / f"session-{res}-{n}+{nv}"
+    simulate_session("jet-down", session, SimulationOptions(
+        views=n, val_views=nv, resolution=(res, res), frame_rate_hz=30, blur_samples=4,
+        gt_times=0, supersample=2, min_step_ns=2_000_000), log=lambda *_: None)
+    run_convert(session, out, offsets="ground-truth", log=lambda *_: None)
+    print(f"simulated + converted {n}+{nv} views at {res}x{res} in {time.perf_counter() - t:.0f} s",
+          flush=True)
+    return out
+
+
+def merged(*cfgs: dict) -> dict:
+    out: dict = {}
+    for c in cfgs:
+        for k, v in c.items():
+            out[k] = {**out.get(k, {}), **v} if isinstance(v, dict) else v
+    return out
+
+
+def child(args) -> None:
+    """One training run + its final evaluation, in this process; prints one JSON line."""
+    import torch
+
+    from evdnerf_ros.eval.evaluate import evaluate_views, static_views, validation_eval
+    from evdnerf_ros.eval.truth import TrueScene
+    from evdnerf_ros.io.trainingset import TrainingSet
+    from evdnerf_ros.train.trainer import Trainer
+
+    torch.set_num_threads(args.threads)
+    setting = json.loads(args.setting)
+    cfg = merged(BASE, json.loads(args.config))
+    work = Path(args.work)
+    with TrainingSet(args.set) as ts:
+        tr = Trainer(ts, cfg, minutes=setting["seconds"] / 60.0,
+                     eval_fn=validation_eval(n_windows=32, max_views=setting["eval_views"]),
+                     log=lambda m: print(m, file=sys.stderr, flush=True))
+        curve = []
+        tr._write_metrics = curve.append          # metrics lines into memory (no run folder)
+        summary = tr.train()
+        truth = TrueScene.of(ts)[0]
+        final = {}
+        field = tr.field.eval()
+        with torch.no_grad():
+            for factor, nviews in setting["final_views"].items():
+                views = static_views(ts, ts.val_views)[:int(nviews)]
+                cache = work / f"truth-{Path(args.set).stem}-x{factor}-{nviews}.pkl"
+                tm = pickle.loads(cache.read_bytes()) if cache.exists() else None
+                _, _, m = evaluate_views(field, ts, views, 32 * int(factor), box=tr.box,
+                                         n_samples=tr.cfg.n_samples, log_eps=tr.cfg.log_eps,
+                                         near=tr.cfg.near, far=tr.cfg.far,
+                                         background=tr.cfg.background, dynamic=tr.dynamic,
+                                         truth=truth, truth_metrics=tm)
+                if tm is None and "truth" in m:
+                    cache.write_bytes(pickle.dumps(m["truth"]))
+                final[f"x{factor}"] = {
+                    "views": len(views), "windows": 32 * int(factor),
+                    "psnr": m["continuous"]["psnr"], "psnr_quantized": m["quantized"]["psnr"],
+                    "zero_floor": m["zero_floor"]["psnr"],
+                    "truth": m["truth"]["continuous"]["psnr"] if "truth" in m else None,
+                    "margin_closed": m.get("margin_closed", {}).get("continuous"),
+                    "margin_closed_quantized": m.get("margin_closed", {}).get("quantized")}
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps({"lever": args.lever, "config": cfg, "iterations": summary["iterations"],
+                      "train_s": summary["wall_s"],
+                      "ms_per_iter": 1000 * summary["wall_s"] / max(1, summary["iterations"]),
+                      "peak_rss_mb": peak_mb, "curve": curve, "final": final}, default=float))
+
+
+def plot(result: dict, path: Path) -> None:
+    fig, ax = pyplot().subplots(1, 2, figsize=(13, 4.8))
+    for name, r in result["runs"].items():
+        pts = [(m["wall_s"], 100 * m["val_margin_closed"]) for m in r["curve"]
+               if m.get("val_margin_closed") is not None]
+        if pts:
+            x, y = zip(*pts)
+            ax[0].plot(x, y, marker=".", lw=2.2 if name == "baseline" else 1.2,
+                       color="k" if name == "baseline" else None,
+                       label=f"{name} ({r['ms_per_iter']:.0f} ms/it)")
+    ax[0].axhline(0, color="grey", ls="--", lw=1)
+    ax[0].set_xlabel(f"training wall time (s, {result['setting']['threads']} torch thread(s) per run)")
+    ax[0].set_ylabel("floor-to-truth margin closed (%, validation, 32 windows)")
+    ax[0].set_title(result["title"], fontsize=10)
+    ax[0].legend(fontsize=7, ncol=2)
+    names = list(result["runs"])
+    factors = sorted({k for r in result["runs"].values() for k in r["final"]}, key=lambda k: int(k[1:]))
+    width = 0.8 / max(1, len(factors))
+    for j, f in enumerate(factors):
+        vals = [100 * (result["runs"][n]["final"].get(f, {}).get("margin_closed") or 0.0) for n in names]
+        ax[1].bar([i + width * (j - (len(factors) - 1) / 2) for i in range(len(names))], vals,
+                  width=width, label=f"{32 * int(f[1:])} windows ({f})")
+    ax[1].axhline(0, color="k", lw=1)
+    ax[1].set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=7)
+    ax[1].set_ylabel("margin closed at the end (%)")
+    ax[1].set_title("final, at the trained and finer windows", fontsize=10)
+    ax[1].legend(fontsize=8)
+    save_figure(fig, path, dpi=110)
+
+
+def main(argv=None):
+    ap = arg_parser(__doc__, quick="the proxy levers for 30 s each")
+    ap.add_argument("--full", action="store_true", help="Jet-Down 128x128, 18+18 views, 5 minutes")
+    ap.add_argument("--levers", default=None, help="comma-separated lever names (default: all)")
+    ap.add_argument("--extra", default="{}", help="JSON {name: config} of further levers")
+    ap.add_argument("--seconds", type=float, default=None, help="training seconds per run")
+    ap.add_argument("--parallel", type=int, default=1, help="runs at a time")
+    ap.add_argument("--work", default="/tmp/bench_quality")
+    ap.add_argument("--stem", default=None)
+    ap.add_argument("--replot", action="store_true", help="redraw the PNG from the JSON")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    for a in ("lever", "set", "config", "setting", "threads"):
+        ap.add_argument(f"--{a}", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        args.threads = int(args.threads)
+        return child(args)
+    setting = dict(FULL if args.full else PROXY)
+    if args.quick:
+        setting["seconds"] = 30.0
+    if args.seconds:
+        setting["seconds"] = args.seconds
+    stem = args.stem or ("quality" if args.full else "quality_proxy")
+    if args.replot:
+        return plot(read_results(args.out, stem), args.out / f"{stem}.png")
+    levers = {**LEVERS, **json.loads(args.extra)}
+    names = args.levers.split(",") if args.levers else list(LEVERS)
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    train_set = build_set(work, setting)
+    result = {"machine": machine("torch"), "load_before": load_average(), "setting": setting,
+              "parallel": args.parallel, "baseline": BASE,
+              "title": (f"Jet-Down {setting['resolution']}x{setting['resolution']}, "
+                        f"{setting['views']}+{setting['val_views']} views, "
+                        f"{setting['seconds']:.0f} s per run"),
+              "runs": {}}
+    partial = work / f"{stem}-partial.json"
+    if partial.exists():
+        result["runs"] = json.loads(partial.read_text())
+    todo = [n for n in names if n not in result["runs"]]
+    running: list = []
+
+    def start(name):
+        log = open(work / f"{stem}-{name}.log", "w")
+        cmd = [sys.executable, __file__, "--child", "--lever", name, "--set", str(train_set),
+               "--work", str(work), "--config", json.dumps(levers[name]),
+               "--setting", json.dumps(setting), "--threads", str(setting["threads"])]
+        return name, log, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True)
+
+    while todo or running:
+        while todo and len(running) < args.parallel:
+            running.append(start(todo.pop(0)))
+        name, log, proc = running.pop(0)
+        out, _ = proc.communicate()
+        log.close()
+        if proc.returncode:
+            raise SystemExit(f"lever {name} failed:\n{(work / f'{stem}-{name}.log').read_text()[-3000:]}")
+        r = json.loads(out.strip().splitlines()[-1])
+        result["runs"][name] = r
+        partial.write_text(json.dumps(result["runs"]))
+        fin = "  ".join(f"{k}: {100 * v['margin_closed']:.1f} %" for k, v in r["final"].items()
+                        if v["margin_closed"] is not None)
+        print(f"{name}: {r['iterations']} it, {r['ms_per_iter']:.0f} ms/it; margin closed {fin}",
+              flush=True)
+    result["load_after"] = load_average()
+    result["summary"] = {n: {"ms_per_iter": r["ms_per_iter"], "iterations": r["iterations"],
+                             **{f"margin_closed_{k}": v["margin_closed"] for k, v in r["final"].items()},
+                             **{f"psnr_{k}": v["psnr"] for k, v in r["final"].items()},
+                             **{f"floor_{k}": v["zero_floor"] for k, v in r["final"].items()},
+                             **{f"truth_{k}": v["truth"] for k, v in r["final"].items()}}
+                         for n, r in result["runs"].items()}
+    write_results(args.out, stem, result, plot)
+    print(json.dumps(result["summary"], indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""The ``device`` setting (auto, cpu, cuda) of train / eval / publish: CPU tensors stay on the
+CPU, and a GPU that was asked for but is absent is a clear error, never a silent fallback."""
+
+import numpy as np
+import pytest
+import torch
+
+from evdnerf_ros.device import CUDA_INSTALL, DeviceError, check_device_name, resolve_device
+from evdnerf_ros.errors import InputError
+
+
+@pytest.fixture
+def no_cuda(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+
+
+def test_names_and_auto(no_cuda):
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto") == torch.device("cpu")           # no GPU: auto is the CPU
+    assert resolve_device(" CPU ") == torch.device("cpu")
+    assert check_device_name("cuda:1") == "cuda:1"
+    for bad in ("gpu", "cuda:x", "", 3):
+        with pytest.raises(DeviceError, match="auto, cpu, cuda"):
+            resolve_device(bad, "config key device")
+    assert issubclass(DeviceError, InputError)
+
+
+def test_auto_picks_cuda_when_available(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert resolve_device("auto").type == "cuda"
+
+
+@pytest.mark.parametrize("name", ["cuda", "cuda:0"])
+def test_cuda_requested_but_absent_names_the_fix(no_cuda, name):
+    with pytest.raises(DeviceError) as exc:
+        resolve_device(name, "RUN: device")
+    msg = str(exc.value)
+    assert msg.startswith("RUN: device") and "requested but" in msg
+    assert "torch==2.13.0" in msg and "--index-url https://download.pytorch.org/whl/cu" in msg
+    assert CUDA_INSTALL in msg
+
+
+def _tiny_run(tmp_path):
+    from evdnerf_ros.field import make_field
+    from evdnerf_ros.train.checkpoint import save_checkpoint
+    from evdnerf_ros.train.config import TrainConfig
+
+    cfg = TrainConfig()
+    torch.manual_seed(3)
+    dyn = torch.zeros((8, 8, 8), dtype=torch.bool)
+    dyn[3:5, 3:5, 2:6] = True
+    run = tmp_path / "run"
+    run.mkdir()
+    save_checkpoint(run / "checkpoint.pt", field=make_field(cfg.backbone, **cfg.field), optimizer=None,
+                    iteration=0, config=cfg.to_dict(), backbone=cfg.backbone, rng={},
+                    box=[[-1, -1, -1], [1, 1, 1]], extra={"dynamic": dyn})
+    return run
+
+
+def test_cpu_tensors_stay_on_the_cpu(tmp_path, no_cuda):
+    from evdnerf_ros.geometry.camera import PinholeCamera, look_at
+    from evdnerf_ros.train.run import TrainedRun
+
+    run = TrainedRun.load(_tiny_run(tmp_path))
+    cam = PinholeCamera.from_fov(12, 10, 50.0)
+    for device in ("cpu", "auto"):
+        r = run.renderer(cam, duration_ns=10**9, device=device)
+        T = look_at([0.0, -3.0, 0.3], [0.0, 0.0, 0.0])
+        img = r.render(T, 0)
+        assert isinstance(img, np.ndarray) and img.dtype == np.float32 and img.shape == (10, 12)
+        assert r.device == torch.device("cpu")
+        assert all(p.device.type == "cpu" for p in r.field.parameters())
+        assert r.dynamic.mask.device.type == "cpu"
+        for plan in r._plan_cache[1]:
+            for name in ("static_rays", "static_grey", "dyn_rays", "delta", "base_sigma", "dyn_idx"):
+                assert getattr(plan, name).device.type == "cpu", name
+            assert all(f.device.type == "cpu" for f in plan.feats[1])
+    baked = run.renderer(cam, duration_ns=10**9, bake_resolution=8, device="cpu")
+    assert all(b.device.type == "cpu" for b in baked.field.buffers())
+
+
+def test_cuda_absent_is_an_error_in_eval_and_publish(tmp_path, no_cuda, capsys):
+    from evdnerf_ros.cli import main
+    from evdnerf_ros.nodes.event_publisher import EventPublisher
+    from evdnerf_ros.train.run import TrainedRun
+
+    run_dir = _tiny_run(tmp_path)
+    from evdnerf_ros.geometry.camera import PinholeCamera
+
+    with pytest.raises(DeviceError, match="torch==2.13.0"):
+        TrainedRun.load(run_dir).renderer(PinholeCamera.from_fov(8, 8, 50.0), duration_ns=10**9, device="cuda")
+    from evdnerf_ros.eval.published import _write_trajectory
+    from evdnerf_ros.geometry.camera import look_at
+
+    T = look_at([0.0, -3.0, 0.3], [0.0, 0.0, 0.0])
+    traj = _write_trajectory(tmp_path / "t.yaml", [0, 10_000_000], [T, T])
+    with pytest.raises(DeviceError, match="device 'cuda' requested"):
+        EventPublisher(("--ros-args", "--log-level", "warn"), dds=False, overrides={
+            "run_dir": str(run_dir), "device": "cuda", "trajectory": str(traj), "camera.width": 8, "camera.height": 8,
+            "field_duration": 1.0, "duration": 0.01})
+    assert main(["eval", str(run_dir), str(tmp_path / "none.h5"), "--device", "cuda"]) == 2
+    err = capsys.readouterr().err
+    assert "device 'cuda' requested" in err and "pip install" in err
