@@ -52,6 +52,11 @@ JOINT = "servo"
 STORAGES = ("mcap", "sqlite3")
 #: After DONE, a camera stream quiet for this long (s) has nothing more to record.
 QUIET_S = 0.5
+#: --repeats: the extra takes' folder, the report, and how the takes are compared
+REPEATS = "repeats"
+REPEATABILITY = "repeatability.json"
+REPEAT_BIN_NS = 5_000_000         # coarser than a twin's render grid, finer than a servo's motion
+REPEAT_WINDOWS = 16
 
 
 @dataclass
@@ -70,6 +75,9 @@ class CaptureOptions:
                                         "spaced between)", nargs=2, kind=float, low=0, high=180,
                                         metavar=("FIRST", "LAST"))
     val_every: int = option(0, "every N-th view is a validation view (0: none)", low=0, high=360)
+    repeats: int = option(1, "takes per view: N > 1 records each view N times (the extra takes in "
+                             "SESSION/repeats/) and reports their run-to-run agreement in repeatability.json",
+                          low=1, high=100)
     turntable: bool = option(True, "the turntable servo turns the scene between views (off: the capture "
                                    "waits for you to move the camera)")
     turn_ms: int = option(1500, "turntable move duration (ms)", low=1, high=65535)
@@ -322,6 +330,7 @@ def capture_session(output, camera, servo, options: CaptureOptions | None = None
     devices = _devices_document(options, camera, servo, K, D, intr_source, T_home)
     records = []
     summary = {"views": [], "out": str(output)}
+    report = _existing_report(output) if resume else {}
     angles = options.turntable_angles()
     for k, angle in enumerate(angles):
         name = view_name(k)
@@ -332,8 +341,9 @@ def capture_session(output, camera, servo, options: CaptureOptions | None = None
             records.append(old)
             log(f"[{k + 1}/{len(angles)}] {name}: complete, kept")
             continue
-        if (output / name).exists():                 # an incomplete earlier attempt: recorded again
-            shutil.rmtree(output / name)
+        for earlier in [output / name, *sorted((output / REPEATS).glob(f"{name}_r*"))]:
+            if earlier.exists():                     # an incomplete earlier attempt: recorded again
+                shutil.rmtree(earlier)
         if options.turntable:
             servo.turn(angle, options.turn_ms)
         else:
@@ -343,8 +353,19 @@ def capture_session(output, camera, servo, options: CaptureOptions | None = None
         log(f"[{k + 1}/{len(angles)}] {name}: turntable {angle:g} deg, recording ...")
         res, error = record_view(camera, servo, output / name, K=K, D=D, pose=pose, options=options,
                                  frame_us=frame_us, stop=stop, live=live, log=log)
+        takes = [res]
+        for r in range(1, options.repeats):
+            if error is not None or stop.is_set() or not takes[-1].complete:
+                break
+            _home(servo, options)
+            (output / REPEATS).mkdir(exist_ok=True)
+            log(f"[{k + 1}/{len(angles)}] {name}: take {r + 1} of {options.repeats} ...")
+            res_r, error = record_view(camera, servo, output / REPEATS / take_name(name, r), K=K, D=D, pose=pose,
+                                       options=options, frame_us=frame_us, stop=stop, live=live, log=log)
+            takes.append(res_r)
+        complete = all(t.complete for t in takes) and len(takes) == options.repeats
         records.append(view_record(name, split, pose, azimuth_deg=options.home_azimuth_deg + view_azimuth_deg(angle),
-                                   turntable_deg=float(angle), complete=bool(res.complete),
+                                   turntable_deg=float(angle), complete=complete,
                                    events=int(res.counts.get("events", 0)),
                                    trigger_events=int(res.counts.get("triggers", 0)),
                                    start_device_us=res.start_device_us, done_device_us=res.done_device_us,
@@ -353,13 +374,57 @@ def capture_session(output, camera, servo, options: CaptureOptions | None = None
         summary["views"].append(asdict(res))
         log(f"[{k + 1}/{len(angles)}] {name}: {res.counts.get('events', 0)} events, "
             f"{res.counts.get('triggers', 0)} trigger edges, {res.duration_s:.2f} s"
-            + ("" if res.complete else " (INCOMPLETE)"))
+            + ("" if complete else " (INCOMPLETE)"))
+        if options.repeats > 1 and complete:
+            report[name] = _repeatability(output, name, options, servo, log=log)
+            _write_report(output, report)
         if error is not None:
             raise error
         if stop.is_set():
             raise CaptureInterrupted(f"capture interrupted in {name}; it is marked incomplete: run again with "
                                      "--resume to record it")
+    if report:
+        summary["repeatability"] = report
     return summary
+
+
+def take_name(view: str, r: int) -> str:
+    """The bag folder of take ``r`` (1, 2, ...) of a view, under SESSION/repeats/."""
+    return f"{view}_r{r}"
+
+
+def _repeatability(output: Path, name: str, options: CaptureOptions, servo, *, log=print) -> dict:
+    """The run-to-run agreement of a view's takes (evdnerf_ros.session.repeatability), aligned at
+    their trigger edges over the motion plus the settle time."""
+    from evdnerf_ros.session.repeatability import repeatability
+
+    span = int(servo.get_profile().duration_ns + options.settle_s * 1e9)
+    bags = [output / name] + [output / REPEATS / take_name(name, r) for r in range(1, options.repeats)]
+    rep = repeatability(bags, span_ns=span, bin_ns=REPEAT_BIN_NS, windows=REPEAT_WINDOWS)
+    w = rep["worst"]
+    fmt = (lambda v, f: "n/a" if v is None else format(v, f))
+    log(f"    {name}: {options.repeats} takes agree: rate corr >= {fmt(w['rate_corr'], '.3f')} "
+        f"({fmt(w['rate_corr_aligned'], '.3f')} once aligned), |lag| <= {fmt(w['abs_lag_ms'], '.1f')} ms, image corr >= {fmt(w['image_corr'], '.3f')}, "
+        f"image L1 diff <= {fmt(w['image_rel_l1'], '.3f')}")
+    return rep
+
+
+def _existing_report(output: Path) -> dict:
+    path = output / REPEATABILITY
+    if not path.is_file():
+        return {}
+    import json
+
+    return json.loads(path.read_text())
+
+
+def _write_report(output: Path, report: dict) -> None:
+    import json
+
+    from evdnerf_ros.atomic import atomic_output
+
+    with atomic_output(output / REPEATABILITY, overwrite=True) as tmp:
+        tmp.write_text(json.dumps(report, indent=2))
 
 
 def _home(servo, options: CaptureOptions) -> None:
