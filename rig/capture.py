@@ -66,7 +66,7 @@ class CaptureOptions:
     camera_serial: str | None = option(None, "camera serial number", kind=str, none_help="the first camera found")
     camera_model: str | None = option(None, "camera model (DVXplorer, DAVIS346, EVK4)", kind=str,
                                       none_help="any")
-    biases: str | None = option(None, "bias file applied before recording (.bias or YAML)", kind=str,
+    biases: str | None = option(None, "bias file (.bias, as Metavision writes it) applied before recording", kind=str,
                                 none_help="the camera's defaults")
     servo_port: str | None = option(None, "serial port of the servo board", kind=str,
                                     none_help="required on a real rig")

@@ -25,7 +25,7 @@ from evdnerf_ros.ros.transport import TransportError
 
 HAVE_ZENOH = importlib.util.find_spec("zenoh") is not None
 needs_zenoh = pytest.mark.skipif(not HAVE_ZENOH, reason="eclipse-zenoh is not installed "
-                                 "(pip install 'evdnerf_ros[zenoh]')")
+                                 "(.venv/bin/pip install -e '.[zenoh]')")
 
 EVENT_PACKET = "event_camera_msgs/msg/EventPacket"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"

@@ -3,7 +3,7 @@
 Selected like ROS 2 selects its middleware: ``RMW_IMPLEMENTATION=rmw_zenoh_cpp`` in the
 environment, or ``rmw="rmw_zenoh_cpp"`` given to :class:`~evdnerf_ros.ros.node.Node`; anything
 else (unset, ``rmw_cyclonedds_cpp``, ``rmw_fastrtps_cpp``, ...) keeps the DDS transport
-(:mod:`.transport`). Needs PyPI ``eclipse-zenoh`` 1.x (``pip install 'evdnerf_ros[zenoh]'``).
+(:mod:`.transport`). Needs PyPI ``eclipse-zenoh`` 1.x (in the checkout: ``.venv/bin/pip install -e '.[zenoh]'``; the distribution is ``rig``).
 
 What goes on the wire is what rmw_zenoh_cpp (docs/design.md, Jazzy and later) sends and expects:
 
@@ -65,7 +65,7 @@ ATTACHMENT_HEAD = struct.Struct("<qqB")
 ATTACHMENT_SIZE = ATTACHMENT_HEAD.size + GID_SIZE
 #: rmw_zenoh's default QoS (qos.cpp), against which the liveliness QoS field is written
 _DEFAULT_DEPTH = 42
-INSTALL_HINT = ("pip install 'evdnerf_ros[zenoh]' (in the checkout: pip install -e '.[zenoh]', which installs "
+INSTALL_HINT = ("pip install 'rig[zenoh]' (in the checkout: .venv/bin/pip install -e '.[zenoh]', which installs "
                 "eclipse-zenoh>=1.0,<2)")
 
 
