@@ -30,7 +30,7 @@ from __future__ import annotations
 import shutil
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +53,8 @@ STORAGES = ("mcap", "sqlite3")
 #: After DONE, a camera stream quiet for this long (s) has nothing more to record.
 QUIET_S = 0.5
 #: --repeats: the extra takes' folder, the report, and how the takes are compared
+#: After DONE + settle, a stream still this far (s) from reaching it is a fault (the view is incomplete).
+STREAM_LAG_S = 15.0
 REPEATS = "repeats"
 REPEATABILITY = "repeatability.json"
 REPEAT_BIN_NS = 5_000_000         # coarser than a twin's render grid, finer than a servo's motion
@@ -135,6 +137,10 @@ class ViewResult:
     done_device_us: int | None
     duration_s: float
     error: str | None = None
+    #: where the view's wall time went (s): camera_start, motion (RUN sent to DONE received),
+    #: stream_catch_up (DONE + settle in real time to the camera's stream reaching it: the
+    #: camera's latency), camera_stop, bag_close
+    timing_s: dict = field(default_factory=dict)
 
 
 class CaptureInterrupted(KeyboardInterrupt):
@@ -157,8 +163,11 @@ def record_view(camera, servo, path: Path, *, K, D, pose, options: CaptureOption
         servo.drain_events()
         run_sent = None
         last_chunk = time.monotonic()
+        timing = {}
         try:
+            tic = time.monotonic()
             camera.start()
+            timing["camera_start"] = time.monotonic() - tic
             while not stop.is_set():
                 chunk = camera.read(timeout_s=0.02)
                 if chunk is not None:
@@ -175,13 +184,21 @@ def record_view(camera, servo, path: Path, *, K, D, pose, options: CaptureOption
                 if chunk is not None:
                     last_chunk = now
                 if done is not None:
-                    # the stream has passed DONE + settle, or has been quiet since (a sensor without
-                    # activity sends nothing: there is nothing more to record)
+                    # the stream has passed DONE + settle, or has been quiet since it passed START (a
+                    # sensor without activity sends nothing: there is nothing more to record; a stream
+                    # still behind START is late, not quiet)
                     reached = camera.sensor_time_ns
                     end = _sensor_ns_of(writer, camera, servo, start, done.device_us)
-                    if reached is not None and end is not None and reached >= end + int(options.settle_s * 1e9):
-                        break
-                    if now - last_chunk > QUIET_S and now > done.host_recv_ns / 1e9 + options.settle_s:
+                    began = _sensor_ns_of(writer, camera, servo, start, start.device_us)
+                    if now > done.host_recv_ns / 1e9 + options.settle_s + STREAM_LAG_S:
+                        raise CameraError(f"{camera.name}: the camera's stream is more than {STREAM_LAG_S:g} s behind "
+                                          f"the servo's DONE (it reached {_seconds(reached)}); check the USB "
+                                          "link and the machine's load")
+                    if (reached is not None and end is not None and reached >= end + int(options.settle_s * 1e9)) \
+                            or (now - last_chunk > QUIET_S and now > done.host_recv_ns / 1e9 + options.settle_s
+                                and reached is not None and began is not None and reached >= began):
+                        timing["motion"] = done.host_recv_ns / 1e9 - run_sent
+                        timing["stream_catch_up"] = max(0.0, now - done.host_recv_ns / 1e9 - options.settle_s)
                         break
                 elif run_sent is not None and now > run_sent + expected_s + options.done_timeout_s:
                     raise ServoTimeout(f"{servo.port_name}: no {'START' if start is None else 'DONE'} of RUN within "
@@ -190,17 +207,21 @@ def record_view(camera, servo, path: Path, *, K, D, pose, options: CaptureOption
         except (CameraError, ServoError) as exc:
             error = exc
         finally:
+            tic = time.monotonic()
             try:
                 camera.stop()
             except CameraError:
                 pass
+            timing["camera_stop"] = time.monotonic() - tic
         _write_view_metadata(rec, writer, camera, servo, K=K, D=D, pose=pose, profile=profile,
                              frame_us=frame_us, start=start, done=done)
+        tic = time.monotonic()
+    timing["bag_close"] = time.monotonic() - tic
     complete = error is None and not stop.is_set() and done is not None
     result = ViewResult(path.name, complete, dict(writer.counts, stats=camera.stats.as_dict()),
                         None if start is None else int(start.device_us),
                         None if done is None else int(done.device_us), time.monotonic() - t0,
-                        None if error is None else str(error))
+                        None if error is None else str(error), {k: round(v, 4) for k, v in timing.items()})
     return result, error
 
 
@@ -216,6 +237,10 @@ def _sensor_ns_of(writer, camera, servo, start, device_us: int) -> int | None:
         return int(camera.clock.host_ns_to_sensor_ns(servo_clock.to_host_ns(int(device_us))))
     except Exception:  # noqa: BLE001 - no camera clock fit yet
         return None
+
+
+def _seconds(sensor_ns) -> str:
+    return "nothing" if sensor_ns is None else f"sensor time {sensor_ns / 1e9:.3f} s"
 
 
 def _status(servo) -> str:
@@ -369,7 +394,8 @@ def capture_session(output, camera, servo, options: CaptureOptions | None = None
                                    events=int(res.counts.get("events", 0)),
                                    trigger_events=int(res.counts.get("triggers", 0)),
                                    start_device_us=res.start_device_us, done_device_us=res.done_device_us,
-                                   dropped_transfers=int(res.counts.get("stats", {}).get("dropped_chunks", 0))))
+                                   dropped_transfers=int(res.counts.get("stats", {}).get("dropped_chunks", 0)),
+                                   timing_s=[t.timing_s for t in takes]))
         _write_yaml(output, options, devices, records)
         summary["views"].append(asdict(res))
         log(f"[{k + 1}/{len(angles)}] {name}: {res.counts.get('events', 0)} events, "

@@ -29,20 +29,23 @@ def test_pin_feed_turns_pulse_widths_into_angles_and_finds_trigger_rises(tmp_pat
     log = tmp_path / "pins.log"
     feed = PinFeed(log, pulse_min_us=1000, pulse_max_us=2000, servo_start_deg=90)
     assert feed.poll() == [] and feed.servo.deg(5) == 90.0        # no log yet: the power-up angle
-    lines = ["0.0000 D8 1 1000", "0.0000 D9 1 1000", "1500.0000 D9 0 2500",     # 1500 us -> 90 deg
-             "1000.0000 D8 0 2000", "20000.0000 D9 1 21000", "21750.5000 D9 0 22750",  # -> 135.09 deg
-             "20000.0000 D10 1 21000", "21000.0000 D10 0"]          # an unfinished last line
+    # chip time (µs), pin, level, host ns: the harness runs 1000 ns behind the chip, except where
+    # the machine held it up (the D9 rise at 20 ms is logged 40 µs late: its time stays the chip's)
+    lines = ["0.0000 D8 1 1000", "0.0000 D9 1 1000", "1500.0000 D9 0 1501000",        # 1500 us -> 90 deg
+             "1000.0000 D8 0 1001000", "20000.0000 D9 1 20041000", "21750.5000 D9 0 21751500",  # -> 135.09 deg
+             "20000.0000 D10 1 20001000", "21000.0000 D10 0"]          # an unfinished last line
     log.write_text("\n".join(lines))
     assert feed.poll() == [1000]
-    assert feed.servo.last_ns == 21000
+    assert feed.chip_to_host_ns == 1000
+    assert feed.servo.last_ns == 20_001_000
     assert feed.servo.deg(1000) == pytest.approx(90.0)
-    assert feed.servo.deg(21000) == pytest.approx(135.09)
-    assert feed.servo.deg(11000) == pytest.approx((90 + 135.09) / 2)  # joined linearly
+    assert feed.servo.deg(20_001_000) == pytest.approx(135.09)
+    assert feed.servo.deg(10_001_000) == pytest.approx((90 + 135.09) / 2)  # joined linearly
     assert feed.turntable.last_ns is None                          # its pulse has not ended yet
     with open(log, "a") as f:
-        f.write(" 21500\n")                                         # the line completes
+        f.write(" 21001000\n")                                      # the line completes
     feed.poll()
-    assert feed.turntable.deg(21000) == pytest.approx(0.0)         # 1000 us: the range's low end
+    assert feed.turntable.deg(20_001_000) == pytest.approx(0.0)    # 1000 us: the range's low end         # 1000 us: the range's low end
 
 
 def test_joint_track_changes_only_where_the_angle_moves():
