@@ -186,3 +186,15 @@ def test_a_document_the_reader_refuses_is_never_written(tmp_path, break_it, matc
         write_session_yaml(root, doc, overwrite=True)
     assert (root / "session.yaml").read_bytes() == before
     assert [p.name for p in root.iterdir()] == ["session.yaml"]
+
+
+def test_a_view_with_nothing_recorded_still_has_its_event_topic(tmp_path):
+    """A capture interrupted before the camera's first packet: the bag is valid, its event topic
+    is there and reads as no events (not 'no topic')."""
+    from evdnerf_ros.io.rosbag2 import read_events
+    from evdnerf_ros.session.recorder import ViewRecorder
+
+    with ViewRecorder(tmp_path / "v", width=16, height=12):
+        pass
+    stream = read_events(tmp_path / "v")
+    assert stream.events.size == 0 and stream.message_count == 0

@@ -74,12 +74,15 @@ class ViewRecorder:
         self.width, self.height, self.encoding = int(width), int(height), encoding
         self._bag = BagWriter(self.path, storage=storage)
         self._raw_checked = False
+        self._events_written = False
 
     def __enter__(self) -> "ViewRecorder":
         self._bag.__enter__()
         return self
 
     def __exit__(self, exc_type, exc, tb):
+        if exc_type is None and not self._events_written:     # the event topic is there even when nothing came
+            self._bag.add_topic(EVENTS, MSGTYPES[EVENTS])
         return self._bag.__exit__(exc_type, exc, tb)
 
     # ----- camera
@@ -134,6 +137,7 @@ class ViewRecorder:
     def events(self, events, triggers=None) -> int:
         """Encode events (and EXT_TRIGGER edges, evt3/evt2 only) onto the event topic;
         successive calls continue in time. Returns the number of packets written."""
+        self._events_written = True
         return self._bag.write_events(EVENTS, events, width=self.width, height=self.height,
                                       encoding=self.encoding,
                                       triggers=triggers if triggers is not None and len(triggers) else None)
@@ -171,6 +175,7 @@ class ViewRecorder:
                                  f"records {self.width}x{self.height} {self.encoding!r}; open the recorder "
                                  "with the camera's size and encoding")
             self._raw_checked = True
+        self._events_written = True
         self._bag.write_raw(EVENTS, MSGTYPES[EVENTS], data, t_ns)
 
 
