@@ -51,6 +51,8 @@ setup(
                                       "event_publisher = evdnerf_ros.nodes.event_publisher:main",
                                       "capture = rig.capture_cli:main"],
                   # plugin commands of the `evdnerf` CLI (evdnerf_ros never imports rig)
-                  "evdnerf.commands": ["rig = rig.cli:register"]},
+                  "evdnerf.commands": ["rig = rig.cli:register"],
+                  # session sources of `evdnerf demo --source` (evdnerf_ros.demo finds them here)
+                  "evdnerf.session_sources": ["virtual-rig = rig.demo_capture:capture_demo_session"]},
     zip_safe=True,
 )

@@ -1,43 +1,48 @@
 """`evdnerf demo`: the end-to-end job on the virtual rig's embedded default scene.
 
 It grows with each part of the toolkit. Today:
-1. simulate a small capture session of the `fork` preset (the real rig's servo-swung fork):
-   one rosbag2 per view with evt3 events, trigger edges, camera info, pose and servo topics,
-   each view in its own clock;
+1. make a small capture session of the `fork` preset (the real rig's servo-swung fork): one
+   rosbag2 per view with events, trigger edges, camera info, pose and servo topics, each view
+   in its own clock. The session's source (``--source``):
+   ``virtual-rig``: captured on the closed-loop virtual rig (the real firmware in simavr, a
+   camera twin on emulated USB): a session source of the entry-point group
+   ``evdnerf.session_sources`` (the rig package's ``rig.demo_capture``; evdnerf_ros never
+   imports rig), which also records the truth the rig knows (scene, true clock offsets, the
+   scene's window on the sensor, which convert crops to); no moving-camera view;
+   ``simulate``: simulated (evdnerf_ros.sim), 4 training + 2 validation + 1 moving view;
+   ``auto`` (default): the virtual rig when it is installed and this machine can run it, else
+   simulate; the demo says which and why;
 2. convert the first view's recording into every container we speak, read each back and
    check it is bit-exact;
-3. draw each view's event image at mid-swing and the event-rate curves of all views (their
-   onsets differ by the injected clock offsets);
-4. sync the views (trigger edges, START times, event-rate onsets) and compare the recovered
-   offsets with the injected ones;
+3. sync the views (trigger edges, START times, event-rate onsets) and compare the recovered
+   offsets with the true ones (injected, or the twin's);
+4. draw each view's event image at mid-swing and the event-rate curves of all views (their
+   onsets differ by the views' clock offsets);
 5. convert the synced session into a training set (TRAIN.h5) and read a dL image back;
 6. train the default `planes` field on the events for ``train_minutes`` (metrics.jsonl:
    validation events-PSNR against wall time), evaluate it on the validation views (10
-   degrees off the training views) at the trained and 4x finer windows, write the GT vs
-   prediction event images and the error-against-run-time report.
+   degrees off the training views; between them on the rig) at the trained and 4x finer
+   windows, write the GT vs prediction event images and the error-against-run-time report.
 """
 
 from __future__ import annotations
 
 import json
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from .atomic import atomic_output
-from .errors import EvdnerfError
+from .errors import EvdnerfError, InputError
 from .events import event_image, event_rate, plot_event_rate, save_png, time_slice
 from .io.event_files import EventFile, read_event_file, write_event_file
 from .io.info import describe, format_info
-from .io.trainingset import TrainingSet
-from .eval.evaluate import run_eval, validation_eval
-from .eval.figures import run_report
 from .session.convert import run_convert
 from .session.sync import run_sync
 from .sim.simulate import SimulationOptions, simulate_session
-from .train.trainer import run_train
 
 SCENE = "fork"
 OPTIONS = SimulationOptions(views=4, val_views=2, moving_views=1, resolution=(96, 72),
@@ -58,11 +63,56 @@ CONVERSIONS = [
 ]
 
 
+#: --source choices; ``auto`` takes the virtual rig where it can run, else the simulator.
+SOURCES = ("auto", "virtual-rig", "simulate")
+#: Entry-point group of session sources: name -> an object with ``available() -> (ok, why)``
+#: and ``__call__(session_dir, *, log) -> session.yaml document`` (rig.demo_capture).
+SOURCE_GROUP = "evdnerf.session_sources"
+VIRTUAL_RIG = "virtual-rig"
+#: Where the event images are drawn: mid-way through the swing (after the servo's start).
+MID_SWING_NS = 350_000_000
+
+
+@dataclass
+class SessionSource:
+    name: str                                  # "virtual-rig" | "simulate"
+    why: str                                   # why this source was taken (printed)
+    make: Callable[..., dict]                  # make(session_dir, log=...) -> session.yaml document
+
+
+def choose_source(choice: str = "auto") -> SessionSource:
+    """The demo's session source for ``--source choice``. ``virtual-rig`` that cannot run here
+    is an InputError naming what is missing; ``auto`` then falls back to simulate."""
+    if choice not in SOURCES:
+        raise InputError(f"demo: --source {choice!r} is not one of {', '.join(SOURCES)}")
+    simulate = lambda why: SessionSource("simulate", why, lambda d, log: simulate_session(SCENE, d, OPTIONS, log=log))  # noqa: E731
+    if choice == "simulate":
+        return simulate("--source simulate")
+    from importlib.metadata import entry_points
+
+    found = [ep for ep in entry_points(group=SOURCE_GROUP) if ep.name == VIRTUAL_RIG]
+    if not found:
+        why = (f"no session source {VIRTUAL_RIG!r} is installed (entry point group {SOURCE_GROUP} of the rig "
+               "package, rig.demo_capture); install the package: pip install -e .")
+    else:
+        try:
+            source = found[0].load()
+            ok, why = source.available()
+        except Exception as exc:  # noqa: BLE001 - a broken plugin is reported, and auto still runs
+            ok, why = False, f"session source {found[0].value} failed to load ({exc!r})"
+        if ok:
+            return SessionSource(VIRTUAL_RIG, f"{choice}: {why}", lambda d, log: source(d, log=log))
+    if choice == VIRTUAL_RIG:
+        raise InputError(f"demo --source {VIRTUAL_RIG}: {why}; or run the demo with --source simulate")
+    return simulate(f"auto: the virtual rig cannot run here: {why}")
+
+
 def run_demo(out_dir: Path, *, overwrite: bool = False, train_minutes: float = TRAIN_MINUTES,
-             log=print) -> dict:
+             source: str = "auto", log=print) -> dict:
+    chosen = choose_source(source)             # before any output: a missing source writes nothing
     with atomic_output(out_dir, overwrite=overwrite, directory=True) as tmp:
         tmp.mkdir()
-        summary = _run(tmp, out_dir, log, train_minutes)
+        summary = _run(tmp, out_dir, log, train_minutes, chosen)
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
     log(f"demo finished: outputs in {out_dir}/ (session/ with sync.png, conversions/, train.h5, "
         "event_images.png, event_rates.png, run/ with metrics.jsonl and eval_events.png, "
@@ -70,20 +120,36 @@ def run_demo(out_dir: Path, *, overwrite: bool = False, train_minutes: float = T
     return summary
 
 
-def _run(out: Path, final_dir: Path, log_final, train_minutes: float) -> dict:
+def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: SessionSource) -> dict:
+    # torch is imported here, not with the module: every `evdnerf` command reads this module's
+    # constants when it builds its parser
+    from .eval.evaluate import run_eval, validation_eval
+    from .eval.figures import run_report
+    from .io.trainingset import TrainingSet
+    from .train.trainer import run_train
+
     def log(msg) -> None:  # show the final paths, not the temporary folder being written
         log_final(str(msg).replace(str(out), str(final_dir)))
 
+    log(f"session source: {source.name} ({source.why})")
     start = time.perf_counter()
-    session = simulate_session(SCENE, out / "session", OPTIONS, log=log)
-    sim_seconds = time.perf_counter() - start
+    session = source.make(out / "session", log=log)
+    session_seconds = time.perf_counter() - start
     views = session["views"]
+    # a capture's scene fills only a window of the sensor: the pictures and the training set keep it
+    crop = ((session.get("rig") or {}).get("virtual") or {}).get("scene_window")
     first = out / "session" / views[0]["bag"]
     log(format_info(describe(first)))
 
-    recorded = read_event_file(first)
-    summary = {"scene": SCENE, "views": len(views), "simulate_seconds": round(sim_seconds, 2),
+    recorded, shift_ns = _on_us_grid(read_event_file(first))
+    if shift_ns:
+        log(f"  times shifted by -{shift_ns} ns for the round trip: the view's clock starts off the microsecond "
+            "grid (the sensor's zero in wall-clock time) and RAW files carry whole microseconds")
+    summary = {"scene": SCENE, "source": source.name, "source_reason": source.why, "views": len(views),
+               "session_seconds": round(session_seconds, 2),
                "events_per_view": [v["events"] for v in views], "round_trips": {}}
+    if source.name == "simulate":
+        summary["simulate_seconds"] = summary["session_seconds"]
     (out / "conversions").mkdir()
     for name, encoding, keeps_triggers in CONVERSIONS:
         path = out / "conversions" / name
@@ -98,14 +164,28 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float) -> dict:
                                         "bit_exact": True}
         log(f"  {name:<20} {encoding or '-':<6} {size / n:6.2f} B/event  bit-exact")
 
+    synced = run_sync(out / "session", log=log)
+    motion_start = session["time"]["motion_start_ns"]
+    truth = {v["name"]: (v.get("ground_truth") or {}).get("clock_offset_ns") for v in views}
+    errors_us = {name: (synced["views"][name]["offset_ns"] - gt - motion_start) / 1000
+                 for name, gt in truth.items() if gt is not None}
+    what = "the injected offsets" if source.name == "simulate" else "the twin's true clock offsets"
+    log(f"sync error against {what}: " + ", ".join(f"{k} {e:+.1f} us" for k, e in errors_us.items()))
+    if len(errors_us) < len(views):
+        log("  no true clock offset (sync not checked) for: "
+            + ", ".join(k for k, gt in truth.items() if gt is None))
+    summary["sync_error_us"] = errors_us
+
     images, curves = [], {}
     servo_start = session["servo"]["start_ns_scene"]
     for v in views:
-        data = recorded if v is views[0] else read_event_file(out / "session" / v["bag"])
-        offset = v["ground_truth"]["clock_offset_ns"]
-        mid_swing = servo_start + 350_000_000 + offset          # mid-way through the swing
+        data = read_event_file(out / "session" / v["bag"]) if v is not views[0] or shift_ns else recorded
+        # the view clock at the servo's start: the true offset, else the synced one
+        at_start = (servo_start + truth[v["name"]] if truth[v["name"]] is not None
+                    else synced["views"][v["name"]]["offset_ns"] - motion_start + servo_start)
+        mid_swing = at_start + MID_SWING_NS
         window = time_slice(data.events, mid_swing, mid_swing + 20_000_000)
-        images.append(event_image(window, data.width, data.height))
+        images.append(event_image(*_in_window(window, crop, data.width, data.height)))
         curves[v["name"]] = event_rate(data.events["t"], 5_000_000)
     gap = np.full((images[0].shape[0], 4, 3), 128, np.uint8)
     sheet = np.concatenate([x for img in images for x in (img, gap)][:-1], axis=1)
@@ -113,24 +193,16 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float) -> dict:
     plot_event_rate(out / "event_rates.png", curves,
                     title="event rate per view (5 ms bins), each in its own clock", t_origin_ns=0)
 
-    synced = run_sync(out / "session", log=log)
-    motion_start = session["time"]["motion_start_ns"]
-    errors_us = {v["name"]: (synced["views"][v["name"]]["offset_ns"]
-                             - v["ground_truth"]["clock_offset_ns"] - motion_start) / 1000
-                 for v in views}
-    log("sync error against the injected offsets: "
-        + ", ".join(f"{k} {e:+.1f} us" for k, e in errors_us.items()))
-    summary["sync_error_us"] = errors_us
-
-    run_convert(out / "session", out / "train.h5", log=log)
+    run_convert(out / "session", out / "train.h5", log=log, crop=None if crop is None else tuple(crop))
     with TrainingSet(out / "train.h5") as ts:
         t0, t1 = ts.time_range
         d_l = ts.log_change(ts.views[0], t0, t1)
         summary["train_h5"] = {"views": len(ts.views), "time_range_ns": [int(t0), int(t1)],
+                               "size": [int(ts.width), int(ts.height)], "crop": crop,
                                "dl_abs_sum_view0": float(abs(d_l).sum())}
 
-    log(f"training the planes field for {train_minutes:g} min on the events of "
-        f"{OPTIONS.views} views")
+    n_train = sum(v["split"] == "train" and not v.get("moving_arc_deg") for v in views)
+    log(f"training the planes field for {train_minutes:g} min on the events of {n_train} views")
     trained = run_train(out / "train.h5", out / "run", config=dict(TRAIN_CONFIG),
                         minutes=train_minutes, eval_fn=validation_eval(), log=log)
     result = run_eval(out / "run", out / "train.h5", factors=(1, 4),
@@ -143,9 +215,46 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float) -> dict:
                            "val_zero_floor_psnr": val["zero_floor"]["psnr"],
                            "val_x4_events_psnr": result["val_windows_x4"]["continuous"]["psnr"],
                            "val_x4_zero_floor_psnr": result["val_windows_x4"]["zero_floor"]["psnr"],
-                           "moving_events_psnr": result["moving_windows_x1"]["continuous"]["psnr"],
-                           "moving_zero_floor_psnr": result["moving_windows_x1"]["zero_floor"]["psnr"]}
+                           "true_scene": result.get("true_scene"),
+                           "true_scene_note": result.get("true_scene_note")}
+    moving = result.get("moving_windows_x1")
+    if moving is not None:
+        summary["training"].update(moving_events_psnr=moving["continuous"]["psnr"],
+                                   moving_zero_floor_psnr=moving["zero_floor"]["psnr"])
+    else:
+        log("moving-camera view: skipped (a turntable capture records static views only)"
+            if source.name == VIRTUAL_RIG else "moving-camera view: none in this session")
+    summary["wall_seconds"] = round(time.perf_counter() - start, 1)
     return summary
+
+
+def _on_us_grid(data: EventFile) -> tuple[EventFile, int]:
+    """(``data`` with every time moved back by the common sub-microsecond remainder, the shift):
+    a recording whose clock is sensor microseconds plus an arbitrary ns origin, ready for the
+    microsecond containers. Unchanged (shift 0) when the times have no one remainder."""
+    times = np.concatenate([data.events["t"], data.triggers["t"]])
+    if not times.size:
+        return data, 0
+    rem = times % 1000
+    shift = int(rem[0])
+    if shift == 0 or np.any(rem != shift):
+        return data, 0
+    events, triggers = data.events.copy(), data.triggers.copy()
+    events["t"] -= np.int64(shift)
+    triggers["t"] -= np.int64(shift)
+    return replace(data, events=events, triggers=triggers), shift
+
+
+def _in_window(events: np.ndarray, crop, width: int, height: int) -> tuple[np.ndarray, int, int]:
+    """(events inside the sensor window crop = x y w h, shifted to it; its size), or all of them."""
+    if crop is None:
+        return events, width, height
+    x, y, w, h = map(int, crop)
+    keep = (events["x"] >= x) & (events["x"] < x + w) & (events["y"] >= y) & (events["y"] < y + h)
+    inside = events[keep]              # a copy: shifting it leaves the recording as read
+    inside["x"] -= np.uint16(x)
+    inside["y"] -= np.uint16(y)
+    return inside, w, h
 
 
 def _check_same(path, got: EventFile, want: EventFile) -> None:

@@ -53,6 +53,9 @@ STORAGES = ("mcap", "sqlite3")
 #: After DONE, a camera stream quiet for this long (s) has nothing more to record.
 QUIET_S = 0.5
 #: --repeats: the extra takes' folder, the report, and how the takes are compared
+#: With a trigger input but no edge seen yet, the clocks' estimate of START is trusted only once
+#: the stream has passed it by this much (ns): a rig without a trigger cable.
+TRIGGER_GRACE_NS = 1_000_000_000
 #: After DONE + settle, a stream still this far (s) from reaching it is a fault (the view is incomplete).
 STREAM_LAG_S = 15.0
 REPEATS = "repeats"
@@ -167,13 +170,14 @@ def record_view(camera, servo, path: Path, *, K, D, pose, options: CaptureOption
         try:
             tic = time.monotonic()
             camera.start()
-            timing["camera_start"] = time.monotonic() - tic
+            started = time.monotonic()          # the pre-roll counts from here: RUN never precedes it
+            timing["camera_start"] = started - tic
             while not stop.is_set():
                 chunk = camera.read(timeout_s=0.02)
                 if chunk is not None:
                     writer.write(chunk)
                 now = time.monotonic()
-                if run_sent is None and now - t0 >= options.pre_roll_s:
+                if run_sent is None and now - started >= options.pre_roll_s:
                     servo.run(wait=False)
                     run_sent = now
                 for ev in servo.drain_events():
@@ -234,9 +238,17 @@ def _sensor_ns_of(writer, camera, servo, start, device_us: int) -> int | None:
     if anchor is not None:
         return int(anchor[0] + round((int(device_us) - anchor[1]) * servo_clock.scale))
     try:
-        return int(camera.clock.host_ns_to_sensor_ns(servo_clock.to_host_ns(int(device_us))))
+        through_clocks = [int(camera.clock.host_ns_to_sensor_ns(servo_clock.to_host_ns(int(us))))
+                          for us in (device_us, start.device_us if start is not None else device_us)]
     except Exception:  # noqa: BLE001 - no camera clock fit yet
         return None
+    if getattr(camera, "trigger_input_enabled", False):
+        # the edge may still be on its way (a stream lagging real time; a clock fit over a
+        # lagging stream is off too): wait until the stream is clearly past where it would be
+        reached = camera.sensor_time_ns
+        if reached is None or reached < through_clocks[1] + TRIGGER_GRACE_NS:
+            return None
+    return through_clocks[0]
 
 
 def _seconds(sensor_ns) -> str:

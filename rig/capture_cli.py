@@ -13,6 +13,12 @@ camera's twin on emulated USB, the scene driven by the firmware's pins; the capt
 runs in a child process (the camera driver needs umockdev's preload) with the rig's truth as its
 calibration, geometry and thresholds. SIGINT / SIGTERM stop after closing the current view (it is
 marked incomplete in session.yaml); ``--resume`` records only the views not complete.
+
+On DDS (``--live``) the node's options are read-only parameters (a run-time set is refused with the
+reason) and, once the camera is open, each camera bias is a dynamic integer parameter
+``biases.<name>`` (``ros2 param set /capture biases.bias_diff_on 20``), as metavision_driver and
+libcaer_driver allow: checked by the driver's own range checks, applied to the camera while it
+records, and logged (also on /rosout) with the time it took effect.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ import signal
 import sys
 import tempfile
 import threading
+import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -63,8 +70,10 @@ def _parameter_specs():
             kind = list if isinstance(default, list) else (spec.kind or type(default))
             if default is None:
                 default, kind = "", str            # ROS has no null: "" means "not set"
-            specs.append(ParameterSpec(f.name, default, spec.help, type=kind, read_only=True, min=spec.low,
-                                       max=spec.high, choices=spec.choices))
+            scalar = kind is not list             # ROS ranges are for numbers (the items were checked at start-up)
+            specs.append(ParameterSpec(f.name, default, spec.help, type=kind, read_only=True,
+                                       min=spec.low if scalar else None, max=spec.high if scalar else None,
+                                       choices=spec.choices))
     return specs
 
 
@@ -103,6 +112,208 @@ class LiveEvents:
         w, h, _ = self.camera
         return self.packetizer.write_events(self.triggers.topic, empty_events(), triggers=triggers, width=w,
                                             height=h, encoding="evt3")
+
+
+# --------------------------------------------------------------------------- live biases
+
+
+def bias_limits(device) -> dict[str, tuple[int, int]]:
+    """{bias: (lowest, highest)} that the driver ``device`` accepts, inclusive; {} for a driver
+    without a range table (its set_biases still checks)."""
+    ranges = getattr(device, "bias_ranges", None)
+    if ranges is not None:                      # EVK4: OpenEB's allowed ranges (offsets from the factory values)
+        return {name: (int(r.lo), int(r.hi)) for name, r in ranges.items()}
+    from .camera import davis346, dvxplorer
+
+    if isinstance(device, dvxplorer.DVXplorer):     # (register, mask, shift, top)
+        return {name: (0, int(spec[3])) for name, spec in dvxplorer.BIASES.items()}
+    if isinstance(device, davis346.DAVIS346):       # (parameter, shift, bits)
+        return {name: (0, (1 << int(spec[2])) - 1) for name, spec in davis346.BIASES.items()}
+    return {}
+
+
+def check_bias_values(device, values: dict, limits: dict) -> dict[str, int]:
+    """The checks ``device.set_biases(values)`` makes before it writes anything (names, integers,
+    ranges), without writing; raises the driver's CameraError with its text."""
+    from .camera.biases import check_biases
+    from .camera.errors import CameraError
+
+    ranges = getattr(device, "bias_ranges", None)
+    if ranges is not None:                      # the EVK4's own check (its warnings come with the write)
+        device.check_bias_names(values, ranges)
+        return check_biases(values, ranges, source=f"{device.name} biases", warn_recommended=False)
+    device.check_bias_names(values, limits)
+    out = {}
+    for name, value in values.items():          # the libcaer drivers' inline check, same text
+        lo, hi = limits[name]
+        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+            raise CameraError(f"{device.name}: bias {name} = {value!r} is out of range; use an integer {lo}..{hi}")
+        out[name] = int(value)
+    return out
+
+
+@dataclass(frozen=True)
+class BiasChange:
+    """Biases applied while the node ran, and when they took effect on the camera."""
+    values: dict            # {bias: value the camera holds afterwards}
+    wall_ns: int            # time.time_ns() when the write returned: the bags' stamps are on this clock
+    sensor_ns: int | None   # the camera's sensor time then (its clock fit); None when not streaming
+    source: str             # "parameter service" or "bias file"
+
+
+class LiveBiases:
+    """The opened camera's biases as the capture node's dynamic parameters ``biases.<name>``.
+
+    A set is checked by the driver's own checks (a validator: a refusal carries the driver's
+    text and nothing is written) and applied with ``set_biases`` (a listener, in the parameter
+    service's thread); the parameters then hold what the camera reads back. Every bias read and
+    write, the session's own included (use :meth:`camera`), goes under ``lock``: the libcaer
+    drivers read-modify-write shared bias words without a lock of their own, and a set must not
+    reach a camera that is being closed (:meth:`close` first)."""
+
+    PREFIX = "biases."
+
+    def __init__(self, node, device):
+        from evdnerf_ros.ros.parameters import ParameterSpec
+
+        self.node, self.device = node, device
+        self.lock = threading.RLock()
+        self.changes: list[BiasChange] = []
+        self.limits = bias_limits(device)
+        self._open = True
+        with self.lock:
+            self.held = {name: int(v) for name, v in device.biases.items()}
+        for name, value in self.held.items():
+            lo, hi = self.limits.get(name, (None, None))
+            node.params.declare(ParameterSpec(self.PREFIX + name, value, f"{device.model} bias {name}; changes the "
+                                              "camera while it records", type=int, dynamic=True, min=lo, max=hi))
+        node.params.validators.append(self._validate)
+        node.params.listeners.append(self._apply)
+        self._announce(new={self.PREFIX + n: v for n, v in self.held.items()})
+
+    def camera(self) -> "SerializedCamera":
+        """The camera for capture_session: its bias reads and writes under ``lock``."""
+        return SerializedCamera(self.device, self)
+
+    def close(self) -> None:
+        """The camera is about to close: later sets are refused with the reason."""
+        with self.lock:
+            self._open = False
+
+    # ----- the parameter service's side (its thread, the parameters' lock held)
+    def _ours(self, changes: dict) -> dict[str, int]:
+        return {k[len(self.PREFIX):]: v for k, v in changes.items() if k.startswith(self.PREFIX)}
+
+    def _validate(self, changes: dict):
+        from .camera.errors import CameraError
+
+        values = self._ours(changes)
+        if not values:
+            return None
+        with self.lock:
+            if not self._open:
+                return (f"{self.device.name}: the capture has ended and the camera is closing; biases change only "
+                        "while the capture node records")
+        try:
+            check_bias_values(self.device, values, self.limits)
+        except CameraError as exc:
+            return str(exc)
+        return None
+
+    def _apply(self, changes: dict) -> None:
+        from .camera.errors import CameraError
+
+        values = self._ours(changes)
+        if not values:
+            return
+        try:
+            self._write(values, "parameter service")
+        except CameraError as exc:
+            # the reply already said yes (listeners cannot refuse): the parameters go back to what
+            # the camera last held, and the error is logged (also on /rosout)
+            kept = {n: self.held[n] for n in values if n in self.held}
+            self._hold(kept)
+            self.node.logger.error(f"biases {values} not applied: {exc}; the parameters keep the camera's values "
+                                   f"{kept}")
+
+    # ----- both sides
+    def read(self) -> dict[str, int]:
+        with self.lock:
+            return self.device.biases
+
+    def _write(self, values: dict, source: str) -> BiasChange:
+        """set_biases, the time it took effect, the camera's values read back into the parameters."""
+        with self.lock:
+            if not self._open:
+                from .camera.errors import CameraError
+
+                raise CameraError(f"{self.device.name}: the camera is closing; biases {values} not applied")
+            self.device.set_biases(values)
+            wall_ns, host_ns = time.time_ns(), time.monotonic_ns()
+            back = {name: int(v) for name, v in self.device.biases.items()}
+            self.held = back
+            change = BiasChange({n: back[n] for n in values if n in back}, wall_ns, self._sensor_ns(host_ns), source)
+            self.changes.append(change)
+            self._hold({n: back[n] for n in values if n in back})
+        self._log(change, values)
+        return change
+
+    def _sensor_ns(self, host_ns: int) -> int | None:
+        from .camera.errors import CameraError
+
+        if not self.device.is_streaming:
+            return None
+        try:
+            return int(self.device.clock.host_ns_to_sensor_ns(host_ns))
+        except CameraError:                       # too few clock samples yet
+            return None
+
+    def _hold(self, values: dict) -> None:
+        """The parameters take the camera's values (a clamp or a failed write shows)."""
+        from evdnerf_ros.errors import InputError
+
+        try:
+            self.node.params.apply({self.PREFIX + n: int(v) for n, v in values.items()}, "camera", startup=True)
+        except InputError as exc:                 # a read-back outside the declared range: only logged
+            self.node.logger.warn(f"biases read back {values}: {exc}")
+
+    def _announce(self, *, new=None, changed=None) -> None:
+        server = getattr(self.node.ros, "params", None)
+        if server is not None:
+            server.publish_event(new=new, changed=changed)
+
+    def _log(self, change: BiasChange, asked: dict) -> None:
+        when = f"{change.wall_ns} ns wall clock (the bags' time base)"
+        if change.sensor_ns is not None:
+            when += f", sensor time {change.sensor_ns} ns"
+        else:
+            when += ", sensor time not known yet" if self.device.is_streaming else ", camera not streaming"
+        self.node.logger.info(f"biases {change.values} applied ({change.source}) at {when}")
+        off = {n: (v, change.values.get(n)) for n, v in asked.items() if change.values.get(n) != int(v)}
+        if off:
+            self.node.logger.warn(f"the camera holds other values than were set: {off} (set, held)")
+
+
+class SerializedCamera:
+    """The opened driver as capture_session drives it: ``biases`` / ``set_biases`` go through
+    LiveBiases (its lock; a bias file applied by the session shows in the parameters), the rest
+    is the driver's own."""
+
+    def __init__(self, device, live: LiveBiases):
+        self._device = device
+        self._live = live
+
+    def __getattr__(self, name):
+        return getattr(self._device, name)
+
+    @property
+    def biases(self) -> dict[str, int]:
+        return self._live.read()
+
+    def set_biases(self, biases: dict) -> None:
+        live = self._live
+        change = live._write(dict(biases), "bias file")
+        live._announce(changed={live.PREFIX + n: v for n, v in change.values.items()})
 
 
 def register(subparsers) -> None:
@@ -200,9 +411,14 @@ def _run_real(rig: RigChoice, opts: CaptureOptions) -> int:
             live = LiveEvents(node)
         with open_camera(serial=opts.camera_serial, model=opts.camera_model) as cam, \
                 ServoClient(opts.servo_port) as servo:
-            capture_session(rig.output, cam, servo, opts, resume=rig.resume, stop=stop,
-                            live=None if live is None else live.for_camera(cam),
-                            log=print if node is None else node.logger.info)
+            biases = LiveBiases(node, cam) if node is not None and node.dds is not None else None
+            try:
+                capture_session(rig.output, cam if biases is None else biases.camera(), servo, opts,
+                                resume=rig.resume, stop=stop, live=None if live is None else live.for_camera(cam),
+                                log=print if node is None else node.logger.info)
+            finally:
+                if biases is not None:
+                    biases.close()              # no set may reach the camera open_camera now closes
     except CaptureInterrupted as exc:
         print(f"evdnerf: {exc}", file=sys.stderr)
         return 143 if got and got[-1] == signal.SIGTERM else 130
@@ -307,4 +523,5 @@ def main(argv=None) -> int:
         return 130
 
 
-__all__ = ["RigChoice", "CaptureNode", "LiveEvents", "register", "run", "main", "spawn_virtual_capture"]
+__all__ = ["RigChoice", "CaptureNode", "LiveEvents", "LiveBiases", "BiasChange", "bias_limits", "check_bias_values",
+           "register", "run", "main", "spawn_virtual_capture"]

@@ -18,6 +18,9 @@ from rig.clock import ClockMap
 from rig.pin_feed import JointTrack, PinFeed
 from rig.turntable import turntable_pose, view_azimuth_deg
 
+#: one closed-loop virtual rig at a time (setup.cfg: --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("virtual_rig")
+
 EVDNERF = [sys.executable, "-m", "evdnerf_ros"]
 REAL_TIME_SCENE = (32, 24)       # what this machine renders in real time while a test suite runs
 

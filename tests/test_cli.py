@@ -146,8 +146,10 @@ def test_every_subcommand_has_help():
 
 def test_demo_runs_end_to_end(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "-o", str(out), "--train-minutes", "0.1"]) == 0
+    assert main(["demo", "-o", str(out), "--train-minutes", "0.1", "--source", "simulate"]) == 0
+    assert "session source: simulate (--source simulate)" in capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["source"] == "simulate"
     assert summary["views"] == 7 and min(summary["events_per_view"]) > 1000
     assert all(v["bit_exact"] for v in summary["round_trips"].values())
     assert (out / "event_images.png").exists() and (out / "event_rates.png").exists()
@@ -216,3 +218,14 @@ def test_report_cli(tmp_path, capsys):
     assert "| b | 50 |" in out and "27.50" in out
     assert (tmp_path / "report.png").stat().st_size > 1000
     assert main(["report", str(tmp_path / "missing")]) == 2
+
+
+def test_building_the_command_line_does_not_import_torch():
+    """Every command builds the whole parser: it must not pay for torch (seconds) unless it trains,
+    evaluates or renders a field."""
+    import subprocess
+    import sys
+
+    code = "import sys; from evdnerf_ros.cli import build_parser; build_parser(); print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"

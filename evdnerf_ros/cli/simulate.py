@@ -11,7 +11,8 @@ from .common import number
 def _cmd_demo(args) -> int:
     from ..demo import run_demo
 
-    run_demo(Path(args.output), overwrite=args.overwrite, train_minutes=args.train_minutes)
+    run_demo(Path(args.output), overwrite=args.overwrite, train_minutes=args.train_minutes,
+             source=args.source)
     return 0
 
 
@@ -25,9 +26,10 @@ def _cmd_simulate(args) -> int:
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="run the end-to-end demo on the embedded virtual scene",
-                       description="Simulate a capture session of the servo-swung fork (one "
-                                   "rosbag2 per view), convert a recording to every container and "
-                                   "check it is bit-exact, draw event images and event-rate plots, "
+                       description="Capture a session of the servo-swung fork on the closed-loop "
+                                   "virtual rig (firmware in simavr, camera twin on emulated USB), or "
+                                   "simulate one (one rosbag2 per view), convert a recording to every "
+                                   "container and check it is bit-exact, draw event images and event-rate plots, "
                                    "sync the views, convert to a training set, train the field on "
                                    "the events, evaluate it on validation views and report "
                                    "events-PSNR against wall time.")
@@ -37,6 +39,12 @@ def register(sub) -> None:
 
     p.add_argument("--train-minutes", type=number(float, low=0, low_open=True, high=10_080), default=TRAIN_MINUTES,
                    help="training budget of the demo's field, in (0, 10080] (default: %(default)s)")
+    from ..demo import SOURCES
+
+    p.add_argument("--source", choices=SOURCES, default="auto",
+                   help="where the session comes from: the virtual rig (needs simavr and umockdev), the "
+                        "simulator, or auto: the virtual rig where it can run, else the simulator "
+                        "(default: %(default)s)")
     p.set_defaults(func=_cmd_demo)
 
     from ..sim.simulate import SimulationOptions

@@ -179,7 +179,7 @@ class DAVIS346(Device):
     CLEAR_SLEEP_S = 0.010
     BIAS_SETTLE_S = 0.200
     START_SETTLE_S = 0.050
-    CONTROL_TIMEOUT_MS = 1000
+    CONTROL_TIMEOUT_MS = None          # the link's (rig.camera.device.TRANSFER_TIMEOUT_MS)
     #: libcaer's APS defaults (us)
     APS_EXPOSURE_US = 4000
     APS_FRAME_INTERVAL_US = 40000

@@ -27,6 +27,7 @@ from __future__ import annotations
 import abc
 import collections
 import errno as _errno
+import os
 import threading
 import time
 import weakref
@@ -42,6 +43,10 @@ from .errors import (CameraDisconnected, CameraError, CameraNotFound, CameraPerm
 
 #: (sensor_us, host_ns) samples kept for the clock fit (a sliding window).
 CLOCK_SAMPLES = 4096
+#: Timeout (ms) of one control or register transfer. A real camera answers in microseconds; an
+#: emulated one is served by a Python process that may be busy rendering, so the virtual bus
+#: gives its drivers a longer one through EVDNERF_USB_TIMEOUT_MS (rig.camera.virtual.usb).
+TRANSFER_TIMEOUT_MS = int(os.environ.get("EVDNERF_USB_TIMEOUT_MS", "1000"))
 
 #: python-libusb1 objects of links closed with abandoned transfers (a gone device never returned
 #: them): kept referenced for the life of the process, so nothing frees memory libusb was given.
@@ -197,32 +202,33 @@ class UsbLink:
 
     # control transfers -------------------------------------------------------------
     def control_in(self, request_type: int, request: int, value: int, index: int, length: int,
-                   timeout_ms: int = 1000, what: str = "") -> bytes:
+                   timeout_ms: int | None = None, what: str = "") -> bytes:
         try:
             return bytes(self.handle.controlRead(request_type, request, value, index, length,
-                                                 timeout_ms))
+                                                 timeout_ms or TRANSFER_TIMEOUT_MS))
         except Exception as exc:
             raise self._error(exc, what or f"control IN 0x{request:02x} value 0x{value:04x} "
                                             f"index 0x{index:04x}") from None
 
     def control_out(self, request_type: int, request: int, value: int, index: int, data: bytes = b"",
-                    timeout_ms: int = 1000, what: str = "") -> int:
+                    timeout_ms: int | None = None, what: str = "") -> int:
         try:
-            return self.handle.controlWrite(request_type, request, value, index, bytes(data), timeout_ms)
+            return self.handle.controlWrite(request_type, request, value, index, bytes(data),
+                                            timeout_ms or TRANSFER_TIMEOUT_MS)
         except Exception as exc:
             raise self._error(exc, what or f"control OUT 0x{request:02x} value 0x{value:04x} "
                                             f"index 0x{index:04x}") from None
 
     # synchronous bulk (register traffic) ---------------------------------------------
-    def bulk_write(self, endpoint: int, data: bytes, timeout_ms: int = 1000, what: str = "") -> int:
+    def bulk_write(self, endpoint: int, data: bytes, timeout_ms: int | None = None, what: str = "") -> int:
         try:
-            return self.handle.bulkWrite(endpoint, bytes(data), timeout_ms)
+            return self.handle.bulkWrite(endpoint, bytes(data), timeout_ms or TRANSFER_TIMEOUT_MS)
         except Exception as exc:
             raise self._error(exc, what or f"bulk OUT 0x{endpoint:02x}") from None
 
-    def bulk_read(self, endpoint: int, length: int, timeout_ms: int = 1000, what: str = "") -> bytes:
+    def bulk_read(self, endpoint: int, length: int, timeout_ms: int | None = None, what: str = "") -> bytes:
         try:
-            return bytes(self.handle.bulkRead(endpoint, length, timeout_ms))
+            return bytes(self.handle.bulkRead(endpoint, length, timeout_ms or TRANSFER_TIMEOUT_MS))
         except Exception as exc:
             raise self._error(exc, what or f"bulk IN 0x{endpoint:02x}") from None
 

@@ -164,7 +164,7 @@ class DVXplorer(Device):
     #: libcaer waits 10 ms after "everything off" and 50 ms after the multiplexer starts
     CLEAR_SLEEP_S = 0.010
     START_SETTLE_S = 0.050
-    CONTROL_TIMEOUT_MS = 1000
+    CONTROL_TIMEOUT_MS = None          # the link's (rig.camera.device.TRANSFER_TIMEOUT_MS)
 
     def __init__(self, serial: str | None = None, **kw):
         super().__init__(serial, **kw)

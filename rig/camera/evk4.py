@@ -240,3 +240,7 @@ class EVK4(Device):
         self._need_open("enable_trigger_input()")
         self.write_register(R.EDF_RESERVED_7004, R.edf_7004(bool(enabled)))
         self.trigger_input = bool(enabled)
+
+    @property
+    def trigger_input_enabled(self) -> bool:
+        return self.trigger_input

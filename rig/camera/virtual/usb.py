@@ -44,6 +44,8 @@ PRELOAD_NAME = "libumockdev-preload.so.0"
 _PRELOAD_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64",
                  "/usr/lib", "/usr/local/lib", "/usr/local/lib/x86_64-linux-gnu")
 MIN_UMOCKDEV = (0, 17, 14)
+#: Transfer timeout (ms) of drivers talking to emulated devices (rig.camera.device.TRANSFER_TIMEOUT_MS).
+EMULATED_TIMEOUT_MS = 10_000
 INSTALL_HINT = ("install umockdev (Debian: apt-get install umockdev gir1.2-umockdev-1.0 "
                 "python3-gi; `bash quickstart.sh test` as root does it and makes `gi` importable "
                 "in the .venv)")
@@ -330,12 +332,13 @@ class VirtualUsbBus:
 
     def env(self, base: dict | None = None) -> dict:
         """Environment for a driver process: LD_PRELOAD + UMOCKDEV_DIR (added to ``base``,
-        default os.environ)."""
+        default os.environ) and the longer transfer timeout of emulated devices."""
         env = dict(os.environ if base is None else base)
         pre = preload_path()
         old = env.get("LD_PRELOAD", "")
         env["LD_PRELOAD"] = pre + (":" + old if old and pre not in old else "")
         env["UMOCKDEV_DIR"] = self.root
+        env.setdefault("EVDNERF_USB_TIMEOUT_MS", str(EMULATED_TIMEOUT_MS))   # rig.camera.device
         return env
 
     def add(self, device: EmulatedUsbDevice, busnum: int = 1) -> str:
