@@ -135,13 +135,10 @@ def bias_limits(device) -> dict[str, tuple[int, int]]:
 def check_bias_values(device, values: dict, limits: dict) -> dict[str, int]:
     """The checks ``device.set_biases(values)`` makes before it writes anything (names, integers,
     ranges), without writing; raises the driver's CameraError with its text."""
-    from .camera.biases import check_biases
     from .camera.errors import CameraError
 
-    ranges = getattr(device, "bias_ranges", None)
-    if ranges is not None:                      # the EVK4's own check (its warnings come with the write)
-        device.check_bias_names(values, ranges)
-        return check_biases(values, ranges, source=f"{device.name} biases", warn_recommended=False)
+    if hasattr(device, "check_bias_values"):    # the EVK4's own check (its warnings come with the write)
+        return device.check_bias_values(values, warn_recommended=False)
     device.check_bias_names(values, limits)
     out = {}
     for name, value in values.items():          # the libcaer drivers' inline check, same text

@@ -245,6 +245,8 @@ def test_biases_and_roi_round_trip_and_roi_crops(make_twin, tmp_path):
             after_load = cam.biases
             for name, call in (("unknown", lambda: cam.set_biases({{"bias_pr": 1}})),
                                ("range", lambda: cam.set_biases({{"bias_diff_on": 500}})),
+                               # inside OpenEB's range but past the 8-bit register: refused, not clamped
+                               ("register", lambda: cam.set_biases({{"bias_diff_on": 255 - cam.factory_biases["bias_diff_on"] + 1}})),
                                ("roi", lambda: cam.set_roi(1200, 0, 100, 10))):
                 try:
                     call()
@@ -279,7 +281,10 @@ def test_biases_and_roi_round_trip_and_roi_crops(make_twin, tmp_path):
     assert {n: (last.get(sp.address, twin.factory[n]) & 0xFF) - twin.factory[n]
             for n, sp in R.BIASES.items()} == want_load
     assert "unknown bias bias_pr; valid biases: bias_diff, bias_diff_off" in out["errors"]["unknown"]
-    assert "outside its allowed range [-150, 200]" in out["errors"]["range"]
+    # OpenEB's [-150, 200] narrowed to what the 8-bit register holds from this sensor's factory value
+    f = twin.factory["bias_diff_on"]
+    held = f"outside its allowed range [{max(-150, -f)}, {min(200, 255 - f)}]"
+    assert held in out["errors"]["range"] and held in out["errors"]["register"]
     assert "outside the 1280x720 sensor" in out["errors"]["roi"]
     # thresholds follow bias_diff_on / bias_diff_off (the twin's source got them)
     from rig.camera.virtual.evk4 import thresholds_from_biases

@@ -32,7 +32,7 @@ import numpy as np
 from evdnerf_ros.events.codecs import make_decoder
 
 from . import evk4_registers as R
-from .biases import check_biases, read_bias_file, write_bias_file
+from .biases import BiasRange, check_biases, read_bias_file, write_bias_file
 from .device import Device, UsbLink
 from .errors import CameraDisconnected, CameraError, CameraProtocolError
 
@@ -189,13 +189,26 @@ class EVK4(Device):
 
     @property
     def bias_ranges(self):
-        return dict(R.BIAS_RANGES)
+        """OpenEB's allowed offsets, narrowed to what this sensor's 8-bit registers hold from
+        its factory values (factory + offset in 0..255; nothing is clamped on the way)."""
+        out = {}
+        for name, r in R.BIAS_RANGES.items():
+            f = self.factory_biases.get(name)
+            lo, hi = (r.lo, r.hi) if f is None else (max(r.lo, -f), min(r.hi, 255 - f))
+            out[name] = BiasRange(lo, hi, max(lo, min(r.rec_lo, hi)), min(hi, max(r.rec_hi, lo)))
+        return out
+
+    def check_bias_values(self, biases: dict[str, int], *, warn_recommended: bool = True) -> dict[str, int]:
+        """Names, integers and ranges (:attr:`bias_ranges`) of a set_biases call, without
+        writing; raises BiasFileError naming the bias and its range."""
+        self._need_open("set_biases()")
+        self.check_bias_names(biases, R.BIASES)
+        return check_biases(biases, self.bias_ranges, source=f"{self.name} biases",
+                            warn_recommended=warn_recommended)
 
     def set_biases(self, biases: dict[str, int]) -> None:
         """Set some biases (offsets from the factory values; OpenEB's names and ranges)."""
-        self._need_open("set_biases()")
-        self.check_bias_names(biases, R.BIASES)
-        values = check_biases(biases, R.BIAS_RANGES, source=f"{self.name} biases")
+        values = self.check_bias_values(biases)
         for name, offset in values.items():
             spec = R.BIASES[name]
             self.write_register(spec.address, R.bias_register_value(self.factory_biases[name] + offset))

@@ -102,7 +102,9 @@ def edf_7004(trigger_in: bool) -> int:
 
 
 def bias_register_value(absolute: int) -> int:
-    return BIAS_BASE_CONF | max(0, min(255, int(absolute)))
+    if not 0 <= int(absolute) <= 255:
+        raise ValueError(f"bias register value {absolute} outside 0..255")   # callers check first
+    return BIAS_BASE_CONF | int(absolute)
 
 
 # --- biases ------------------------------------------------------------------------------
