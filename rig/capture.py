@@ -71,7 +71,7 @@ class CaptureOptions:
     camera_serial: str | None = option(None, "camera serial number", kind=str, none_help="the first camera found")
     camera_model: str | None = option(None, "camera model (DVXplorer, DAVIS346, EVK4)", kind=str,
                                       none_help="any")
-    biases: str | None = option(None, "bias file (.bias, as Metavision writes it) applied before recording", kind=str,
+    bias_file: str | None = option(None, "bias file (.bias, as Metavision writes it) applied before recording", kind=str,
                                 none_help="the camera's defaults")
     servo_port: str | None = option(None, "serial port of the servo board", kind=str,
                                     none_help="required on a real rig")
@@ -353,10 +353,10 @@ def capture_session(output, camera, servo, options: CaptureOptions | None = None
     if resume and not (output / "session.yaml").is_file():
         raise InputError(f"{output}: nothing to resume (no session.yaml); capture without --resume")
     output.mkdir(parents=True, exist_ok=True)
-    if options.biases:
+    if options.bias_file:
         from .camera.biases import read_bias_file
 
-        camera.set_biases(read_bias_file(options.biases))
+        camera.set_biases(read_bias_file(options.bias_file))
     camera.enable_trigger_input(True)
     K, D, intr_source = _intrinsics(options, camera)
     hello = servo.handshake()

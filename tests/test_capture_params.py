@@ -82,7 +82,7 @@ def test_biases_change_live_and_the_options_stay_read_only(virtual_rig, tmp_path
     bias_file = tmp_path / "start.bias"
     bias_file.write_text("% applied by the session before its first view\n7 % bias_fo\n")
     rig = RigChoice(output=str(out), live=True)
-    opts = CaptureOptions(views=3, turn_ms=300, home_ms=300, pre_roll_s=0.1, settle_s=0.1, biases=str(bias_file))
+    opts = CaptureOptions(views=3, turn_ms=300, home_ms=300, pre_roll_s=0.1, settle_s=0.1, bias_file=str(bias_file))
     proc = spawn_virtual_capture(vr, rig, opts, tmp_path, env=env, stdout=subprocess.PIPE,
                                  stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
@@ -154,7 +154,7 @@ def test_biases_change_live_and_the_options_stay_read_only(virtual_rig, tmp_path
         assert not ok and "is of type {integer}" in why, why
         [(ok, why)] = client.set(atomically=True, **{"biases.bias_fo": 5, "biases.bias_diff_off": 10_000})
         assert not ok and "outside its range" in why, why
-        for name, v in (("views", 7), ("biases", "/tmp/other.bias"), ("c_pos", 0.3)):
+        for name, v in (("views", 7), ("bias_file", "/tmp/other.bias"), ("c_pos", 0.3)):
             [(ok, why)] = client.set(**{name: v})
             assert not ok and f"parameter {name!r} is read-only while the node runs" in why, why
         assert vr.twin.register_writes(mark) == [] and vr.twin.bias_offsets() == before
@@ -188,9 +188,9 @@ def test_capture_options_are_read_only_parameters():
 
     node = CaptureNode([], overrides=_node_values(RigChoice(output="S"), CaptureOptions(views=3)), dds=False)
     assert node.params["views"] == 3 and node.params["look_at"] == [0.0, 0.0, -0.3]
-    reasons = node.params.set_runtime([("views", 5), ("look_at", [1.0, 2.0, 3.0]), ("biases", "x.bias")], "t")
+    reasons = node.params.set_runtime([("views", 5), ("look_at", [1.0, 2.0, 3.0]), ("bias_file", "x.bias")], "t")
     assert all(r and "read-only while the node runs" in r for r in reasons), reasons
-    assert node.params["views"] == 3 and node.params["biases"] == ""
+    assert node.params["views"] == 3 and node.params["bias_file"] == ""
 
 
 @pytest.mark.parametrize("model, bias, bad", [("EVK4", "bias_diff_on", 201), ("DVXplorer", "current_on", 9),
