@@ -14,12 +14,7 @@ that log while the harness writes it and turns it into what the rest of the rig 
 * D8's rising edges (the trigger pulse the firmware raises at each servo motion's first frame),
   in host time, for the camera's trigger input.
 
-Times are ``time.monotonic_ns()`` (what the camera twins' clocks and the servo client use), of
-the edge in the chip's own time: the harness paces the chip to real time and is never ahead of
-it, only late, so the least ``host - chip`` seen is the on-time offset, and an edge lies at its
-chip time plus that offset. A harness slowed by the machine's load then delays when the rig
-learns of an edge, never where the edge lies in time (the motion stays repeatable; the twin
-waits for the joints instead).
+Times are ``time.monotonic_ns()`` (what the camera twins' clocks and the servo client use).
 """
 
 from __future__ import annotations
@@ -46,10 +41,7 @@ class JointTrack:
     def extend(self, t_ns: np.ndarray, deg: np.ndarray) -> None:
         if t_ns.size:
             t, d = self._frames
-            t_ns = t_ns.astype(np.int64)
-            if t.size:                      # a smaller chip-to-host offset found later: never backwards
-                t_ns = np.maximum(t_ns, t[-1])
-            self._frames = (np.concatenate([t, t_ns]),
+            self._frames = (np.concatenate([t, t_ns.astype(np.int64)]),
                             np.concatenate([d, deg.astype(np.float64)]))
 
     @property
@@ -90,10 +82,9 @@ class PinFeed:
         self.turntable = JointTrack(turntable_start_deg)
         self.trigger_rises_ns: list[int] = []
         self.covered_ns = 0                    # host time up to which the log has been read
-        self.chip_to_host_ns: int | None = None  # the on-time offset (module docstring)
         self._offset = 0
         self._partial = b""
-        self._rise: dict[str, int | None] = {PIN_SERVO: None, PIN_TURNTABLE: None}   # chip ns of a rise
+        self._rise: dict[str, tuple[int, int] | None] = {PIN_SERVO: None, PIN_TURNTABLE: None}
         self._lock = threading.Lock()
 
     def angle_of_width(self, width_ns):
@@ -118,12 +109,10 @@ class PinFeed:
             rows = parse_pin_lines(data[:cut].decode("ascii", "replace").splitlines())
             if not rows.size:
                 return []
-            late = int((rows["host_ns"] - rows["t_ns"]).min())
-            off = self.chip_to_host_ns = late if self.chip_to_host_ns is None else min(self.chip_to_host_ns, late)
-            self.covered_ns = max(self.covered_ns, int(rows["t_ns"].max()) + off)
+            self.covered_ns = max(self.covered_ns, int(rows["host_ns"].max()))
             for pin, track in ((PIN_SERVO, self.servo), (PIN_TURNTABLE, self.turntable)):
                 self._pulses(rows[rows["pin"] == pin], pin, track)
-            tr = rows[(rows["pin"] == PIN_TRIGGER) & (rows["level"] == 1)]["t_ns"] + off
+            tr = rows[(rows["pin"] == PIN_TRIGGER) & (rows["level"] == 1)]["host_ns"]
             new = [int(t) for t in tr]
             self.trigger_rises_ns += new
             return new
@@ -132,12 +121,12 @@ class PinFeed:
         """Complete high pulses of one pin (a rise may come in an earlier poll than its fall)."""
         times, widths = [], []
         rise = self._rise[pin]
-        for t_sim, level in zip(rows["t_ns"].tolist(), rows["level"].tolist()):
+        for t_sim, level, host in zip(rows["t_ns"].tolist(), rows["level"].tolist(), rows["host_ns"].tolist()):
             if level:
-                rise = t_sim
+                rise = (t_sim, host)
             elif rise is not None:
-                times.append(rise + self.chip_to_host_ns)
-                widths.append(t_sim - rise)         # the width in the chip's own time: exact
+                times.append(rise[1])
+                widths.append(t_sim - rise[0])      # the width in the chip's own time: exact
                 rise = None
         self._rise[pin] = rise
         if times:

@@ -49,18 +49,23 @@ def test_demo_captures_its_session_on_the_virtual_rig(tmp_path):
     # machine); sync by trigger finds each view's START within the sensor's microsecond
     motion_start = doc["time"]["motion_start_ns"]
     assert motion_start == doc["servo"]["start_ns_scene"] == 100_000_000
-    truth = {v["name"]: v["ground_truth"]["clock_offset_ns"] for v in views}
-    assert all(t is not None for t in truth.values()), [v["ground_truth"] for v in views]
+    # (a busy machine can make the twin place an edge late: that view then has no true offset,
+    # and the rig says so)
+    truth = {v["name"]: (v["ground_truth"] or {}).get("clock_offset_ns") for v in views}
+    placed = {k: t for k, t in truth.items() if t is not None}
+    late = doc["rig"]["virtual"]["late_trigger_edges"]
+    assert len(placed) >= 3 and len(placed) + late >= len(views), [v["ground_truth"] for v in views]
     for v in views:
         assert v["sync"]["method"] == "trigger"
-        assert abs(v["sync"]["offset_ns"] - truth[v["name"]] - motion_start) <= 1000
+        if truth[v["name"]] is not None:
+            assert abs(v["sync"]["offset_ns"] - truth[v["name"]] - motion_start) <= 1000
     # the views' clocks differ (separate recordings seconds apart): the check is not of a constant
-    assert len({t // 10**9 for t in truth.values()}) == len(views)
+    assert len({t // 10**9 for t in placed.values()}) == len(placed)
 
     summary = json.loads((out / "summary.json").read_text())
     assert summary["source"] == "virtual-rig" and summary["views"] == 6
     assert all(v["bit_exact"] for v in summary["round_trips"].values())
-    assert set(summary["sync_error_us"]) == set(truth) and all(abs(e) <= 1.0 for e in summary["sync_error_us"].values())
+    assert set(summary["sync_error_us"]) == set(placed) and all(abs(e) <= 1.0 for e in summary["sync_error_us"].values())
 
     x, y, w, h = doc["rig"]["virtual"]["scene_window"]
     from evdnerf_ros.io.trainingset import TrainingSet

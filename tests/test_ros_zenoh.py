@@ -179,7 +179,7 @@ def test_missing_package_names_the_extra(monkeypatch):
     from evdnerf_ros.ros.node import Node
 
     monkeypatch.setitem(sys.modules, "zenoh", None)
-    with pytest.raises(TransportError, match=r"pip install 'evdnerf_ros\[zenoh\]'"):
+    with pytest.raises(TransportError, match=r"pip install 'rig\[zenoh\]'"):
         Node(name="n", rmw="rmw_zenoh_cpp")
 
 

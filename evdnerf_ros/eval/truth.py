@@ -1,17 +1,21 @@
-"""The true scene as the reference of an evaluation (training sets converted from `simulate`).
+"""The true scene as the reference of an evaluation (training sets converted from `simulate`,
+or from a capture on the closed-loop virtual rig, whose camera twin renders a known scene).
 
 A trained field is scored against the events; so is the all-zero prediction (the floor).  For
-a simulated session we also know the scene itself: its renderer, scored by the same protocol on
-the same views and windows, is what a perfect field would reach (events are quantised and
-noisy, so it is not a perfect score).  The **fraction of the floor-to-truth margin** a field
-closes, ``(field - floor) / (truth - floor)``, says how far training got independently of how
-hard the scene is.
+a simulated or virtual-rig session we also know the scene itself: its renderer, scored by the
+same protocol on the same views and windows, is what a perfect field would reach (events are
+quantised and noisy, so it is not a perfect score).  The **fraction of the floor-to-truth
+margin** a field closes, ``(field - floor) / (truth - floor)``, says how far training got
+independently of how hard the scene is.
 
 What is needed is recorded by ``evdnerf convert`` in the training set's provenance under
 ``truth``: the scene (preset name or absolute file path), the renderer's supersampling, and per
 view the scene time at the common time origin (``offset_ns - clock_offset_ns``: the view clock
-reads scene time + its injected clock offset).  With ``--downsample 2`` the true dL is rendered
-at the source size and summed over 2x2 blocks, as the events were.
+reads scene time + its clock offset).  With ``--downsample 2`` the true dL is rendered at the
+size before downsampling and summed over 2x2 blocks, as the events were.  A set converted with
+``--crop`` is rendered through its own (shifted) intrinsics at the crop's size: the sensor
+window the events came from, not the whole sensor.  A session that knows its scene but not
+every view's time in it gets ``truth_note`` instead (why not), which :meth:`TrueScene.of` reports.
 """
 
 from __future__ import annotations
@@ -36,7 +40,9 @@ class TrueScene:
         self.scene = load_scene(record["scene"], check_cameras=False)
         prov = train_set.provenance
         self.s = int(prov.get("downsample", 1))
-        w0, h0 = prov.get("source_size", [train_set.width, train_set.height])
+        # the size the events had before downsampling: the crop's (whose K convert shifted), else the sensor's
+        crop = prov.get("crop")
+        w0, h0 = crop[2:] if crop else prov.get("source_size", [train_set.width, train_set.height])
         self.size = int(w0), int(h0)
         self.origin = {k: int(v) for k, v in record["scene_time_at_origin_ns"].items()}
         self.supersample = int(record.get("supersample", 2))
@@ -47,7 +53,9 @@ class TrueScene:
         """(the reference, "") or (None, why there is none)."""
         record = train_set.provenance.get("truth")
         if not record:
-            return None, "no true scene: the training set was not converted from a simulated session"
+            return None, (train_set.provenance.get("truth_note")
+                          or "no true scene: the training set was not converted from a simulated session "
+                             "or a capture on the virtual rig")
         try:
             return cls(train_set, record), ""
         except EvdnerfError as exc:

@@ -40,7 +40,10 @@ decoded and written in batches of ~2 M events, never a whole view at once):
 6. **Frames**: the view's blurred frames (.npz) are copied with their times shifted by the
    offset (``frames=False`` skips them).
 7. **Provenance**: source bags, offsets and their source, the sync records, the window and
-   how it was found, topics, software version, sha256 of session.yaml.
+   how it was found, topics, software version, sha256 of session.yaml, and for a session that
+   knows its scene (simulated, or captured on the virtual rig) what evaluation needs to render
+   it (``truth``; else ``truth_note``: why not, when the scene is known but a view's time in it
+   is not).
 
 Errors (all :class:`~evdnerf_ros.errors.EvdnerfError`, naming the view and its bag; the output
 is written through :func:`~evdnerf_ros.atomic.atomic_output`, so nothing is left behind):
@@ -601,9 +604,12 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
                 "intrinsics_source": options.intrinsics, "poses_source": options.poses, "topics": topics,
                 "views": prov_views,
             }
-            truth = _truth_record(session.data.get("source"), prov_views, session.data.get("options"))
+            truth, no_truth = _truth_record(session.data.get("source"), prov_views, session.data.get("options"))
             if truth is not None:
                 provenance["truth"] = truth
+            elif no_truth:              # a session that knows its scene, but not every view's time in it
+                provenance["truth_note"] = no_truth
+                log(f"  {no_truth}")
             w.finish(t_end=end, provenance=provenance, scene_bounds=scene_bounds,
                      attrs={"offsets_source": offsets_source, "window_source": window_source})
             for plan in plans:
@@ -770,20 +776,35 @@ class _BackgroundAppender:
 # =========================================================================== entry points
 
 
-def _truth_record(source: dict | None, views: dict, options: dict | None) -> dict | None:
-    """What evaluation needs to render the true scene (evdnerf_ros.eval.truth): None unless the
-    session was simulated and every view's injected clock offset is known. The view clock reads
-    scene time + clock offset, so the scene time at the common origin is offset - clock offset."""
-    if not source or source.get("kind") != "simulation" or not source.get("scene_ref"):
-        return None
-    origin = {}
-    for name, v in views.items():
-        gt = v.get("ground_truth_clock_offset_ns")
-        if gt is None:
-            return None
-        origin[name] = int(v["offset_ns"]) - int(gt)
-    return {"scene": str(source["scene_ref"]), "supersample": int((options or {}).get("supersample", 2)),
-            "scene_time_at_origin_ns": origin}
+def _truth_record(source: dict | None, views: dict, options: dict | None) -> tuple[dict | None, str]:
+    """What evaluation needs to render the true scene (evdnerf_ros.eval.truth), or (None, why
+    not; "" for a session that does not know its scene, e.g. a real capture). Two kinds of
+    session know it: a simulated one (rendered at options.supersample) and one captured on the
+    virtual rig (``source.rig: virtual``; its camera twin rendered ``source.scene_ref`` at
+    ``source.supersample``). Both write ``ground_truth.clock_offset_ns`` as the view clock's
+    reading at scene time 0 (the view clock reads scene time + clock offset), so the scene time
+    at the common origin is offset - clock offset, whichever way the offsets were found."""
+    source = source or {}
+    kind = source.get("kind")
+    if kind == "simulation":
+        supersample = (options or {}).get("supersample", 2)
+    elif kind == "capture" and source.get("rig") == "virtual":
+        supersample = source.get("supersample", 1)
+    else:
+        return None, ""
+    if not source.get("scene_ref"):
+        return None, ""
+    unknown = [name for name, v in views.items() if v.get("ground_truth_clock_offset_ns") is None]
+    if unknown:
+        fix = ("the virtual rig records none where its camera twin placed the trigger edge late or not at all, "
+               "when the machine fell behind real time: capture again on a less loaded machine"
+               if kind == "capture" else "restore the simulator's ground_truth records in session.yaml")
+        which = f"view{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}"
+        return None, (f"no true scene: session.yaml has no ground_truth.clock_offset_ns for {which}, so the "
+                      f"scene's time there is unknown ({fix})")
+    origin = {name: int(v["offset_ns"]) - int(v["ground_truth_clock_offset_ns"]) for name, v in views.items()}
+    return {"scene": str(source["scene_ref"]), "supersample": int(supersample),
+            "scene_time_at_origin_ns": origin}, ""
 
 
 def run_convert(session_dir, out, options: ConvertOptions | None = None, *, overwrite: bool = False,
