@@ -50,8 +50,10 @@ from .turntable import turntable_pose, view_azimuth_deg
 #: The servo joint's name in JointState messages and session.yaml.
 JOINT = "servo"
 STORAGES = ("mcap", "sqlite3")
-#: After DONE, a camera stream quiet for this long (s) has nothing more to record.
+#: After DONE, a camera stream quiet for this long (s) has nothing more to record, once it has
+#: come within QUIET_NEAR_END_NS of the motion's end (a motion's last events lie at its end).
 QUIET_S = 0.5
+QUIET_NEAR_END_NS = 100_000_000
 #: --repeats: the extra takes' folder, the report, and how the takes are compared
 #: With a trigger input but no edge seen yet, the clocks' estimate of START is trusted only once
 #: the stream has passed it by this much (ns): a rig without a trigger cable.
@@ -188,19 +190,18 @@ def record_view(camera, servo, path: Path, *, K, D, pose, options: CaptureOption
                 if chunk is not None:
                     last_chunk = now
                 if done is not None:
-                    # the stream has passed DONE + settle, or has been quiet since it passed START (a
-                    # sensor without activity sends nothing: there is nothing more to record; a stream
-                    # still behind START is late, not quiet)
+                    # the stream has passed DONE + settle, or has reached the motion's end and been
+                    # quiet since (a sensor without activity sends nothing: there is nothing more to
+                    # record; a stream still short of the motion's end is late, not quiet)
                     reached = camera.sensor_time_ns
                     end = _sensor_ns_of(writer, camera, servo, start, done.device_us)
-                    began = _sensor_ns_of(writer, camera, servo, start, start.device_us)
                     if now > done.host_recv_ns / 1e9 + options.settle_s + STREAM_LAG_S:
                         raise CameraError(f"{camera.name}: the camera's stream is more than {STREAM_LAG_S:g} s behind "
                                           f"the servo's DONE (it reached {_seconds(reached)}); check the USB "
                                           "link and the machine's load")
                     if (reached is not None and end is not None and reached >= end + int(options.settle_s * 1e9)) \
                             or (now - last_chunk > QUIET_S and now > done.host_recv_ns / 1e9 + options.settle_s
-                                and reached is not None and began is not None and reached >= began):
+                                and reached is not None and end is not None and reached >= end - QUIET_NEAR_END_NS):
                         timing["motion"] = done.host_recv_ns / 1e9 - run_sent
                         timing["stream_catch_up"] = max(0.0, now - done.host_recv_ns / 1e9 - options.settle_s)
                         break

@@ -40,7 +40,7 @@ SOURCE_NAME = "virtual-rig"
 SCENE = "fork"
 #: Rendered at this size in the sensor's centre; real time on 2 busy cores with the rate below.
 SCENE_SIZE = (48, 36)
-RATE_HZ = 250.0
+RATE_HZ = 125.0
 #: 6 turntable views over 0..180 deg, every third for validation: 4 training + 2 validation
 #: views between them, as the simulated demo's 4 + 2.
 VIEWS, VAL_EVERY = 6, 3

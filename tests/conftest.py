@@ -73,3 +73,31 @@ def pid_alive(pid: int) -> bool:
     except OSError:
         return False
     return state not in ("Z", "X")
+
+
+# --------------------------------------------------------------------------- the closed-loop virtual rig
+
+#: The virtual rig's scene size and render rate in tests: what this machine renders near real
+#: time while a test suite runs (the fork's renders cost ~11 ms here), leaving the simulated
+#: Arduino its core.
+RIG_SCENE = (32, 24)
+RIG_RATE_HZ = 150
+
+
+@pytest.fixture
+def virtual_rig(built):
+    """A running closed-loop virtual rig (rig.virtual_rig); skips with the reason without
+    umockdev or the firmware tools."""
+    from rig.camera.virtual.usb import umockdev_available
+    from rig.virtual_arduino import missing_tools
+
+    ok, why = umockdev_available()
+    if not ok:
+        pytest.skip(f"umockdev: {why}")
+    missing = [p for p in missing_tools() if p != "avrdude"]
+    if missing:
+        pytest.skip(f"firmware tools missing: {missing}")
+    from rig.virtual_rig import VirtualRig
+
+    with VirtualRig(scene_size=RIG_SCENE, rate_hz=RIG_RATE_HZ) as vr:
+        yield vr

@@ -22,7 +22,6 @@ from rig.turntable import turntable_pose, view_azimuth_deg
 pytestmark = pytest.mark.xdist_group("virtual_rig")
 
 EVDNERF = [sys.executable, "-m", "evdnerf_ros"]
-REAL_TIME_SCENE = (32, 24)       # what this machine renders in real time while a test suite runs
 
 
 # --------------------------------------------------------------------------- pieces
@@ -112,18 +111,6 @@ def test_incomplete_views_are_refused_by_the_session_reader(tmp_path):
 # --------------------------------------------------------------------------- the closed loop
 
 
-def _need_rig():
-    from rig.camera.virtual.usb import umockdev_available
-    from rig.virtual_arduino import missing_tools
-
-    ok, why = umockdev_available()
-    if not ok:
-        pytest.skip(f"umockdev: {why}")
-    missing = [p for p in missing_tools() if p != "avrdude"]
-    if missing:
-        pytest.skip(f"firmware tools missing: {missing}")
-
-
 def _capture(vr, out, tmp, **opts):
     from rig.capture_cli import RigChoice, spawn_virtual_capture
 
@@ -134,15 +121,6 @@ def _capture(vr, out, tmp, **opts):
 
 def _views(out):
     return {v["name"]: v for v in yaml.safe_load((Path(out) / "session.yaml").read_text())["views"]}
-
-
-@pytest.fixture
-def virtual_rig(built):
-    _need_rig()
-    from rig.virtual_rig import VirtualRig
-
-    with VirtualRig(scene_size=REAL_TIME_SCENE, rate_hz=250) as vr:
-        yield vr
 
 
 def test_closed_loop_capture_sync_convert_train(virtual_rig, tmp_path):

@@ -17,32 +17,10 @@ from rig.capture import CaptureOptions
 #: one closed-loop virtual rig at a time (setup.cfg: --dist loadgroup)
 pytestmark = pytest.mark.xdist_group("virtual_rig")
 
-REAL_TIME_SCENE = (32, 24)       # what this machine renders in real time while a test suite runs
 
 
 def _domain() -> int:
     return 1 + (os.getpid() * 53 + time.time_ns() // 1000) % 200
-
-
-def _need_rig():
-    from rig.camera.virtual.usb import umockdev_available
-    from rig.virtual_arduino import missing_tools
-
-    ok, why = umockdev_available()
-    if not ok:
-        pytest.skip(f"umockdev: {why}")
-    missing = [p for p in missing_tools() if p != "avrdude"]
-    if missing:
-        pytest.skip(f"firmware tools missing: {missing}")
-
-
-@pytest.fixture
-def virtual_rig(built):
-    _need_rig()
-    from rig.virtual_rig import VirtualRig
-
-    with VirtualRig(scene_size=REAL_TIME_SCENE, rate_hz=250) as vr:
-        yield vr
 
 
 def _until(what, timeout_s: float, poll_s: float = 0.02):
