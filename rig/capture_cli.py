@@ -457,7 +457,7 @@ def spawn_virtual_capture(vr, rig: RigChoice, opts: CaptureOptions, workdir, **p
     argv = [sys.executable, "-m", "evdnerf_ros", "capture", "-o", str(rig.output), "--config", str(config)]
     if rig.resume:
         argv.append("--resume")
-    return spawn_child(argv, vr.bus, **popen_kw)
+    return spawn_child(argv, vr.bus, env=vr.env(popen_kw.pop("env", None)), **popen_kw)
 
 
 def _run_virtual(rig: RigChoice, opts: CaptureOptions) -> int:

@@ -53,6 +53,10 @@ class TriggerRecord:
     on_time: bool           # the edge landed at its true sensor time
 
 
+#: Reply timeout (s) of the servo client talking to the simulated board (rig.servo; real boards: 1 s).
+SIMULATED_SERVO_TIMEOUT_S = 5.0
+
+
 @dataclass
 class VirtualRig:
     """See the module docstring; a context manager."""
@@ -151,8 +155,11 @@ class VirtualRig:
         return self.twin.serial
 
     def env(self, base: dict | None = None) -> dict:
-        """The environment of a process that runs the camera driver against the twin."""
-        return self.bus.env(base)
+        """The environment of a process that runs the camera driver against the twin (and the
+        servo client against the simulated board, which may answer late on a busy machine)."""
+        env = self.bus.env(base)
+        env.setdefault("EVDNERF_SERVO_TIMEOUT_S", str(SIMULATED_SERVO_TIMEOUT_S))
+        return env
 
     def intrinsics(self) -> np.ndarray:
         """The twin's true K on the full sensor (the scene's camera, centred)."""

@@ -85,9 +85,27 @@ RIG_RATE_HZ = 150
 
 
 @pytest.fixture
-def virtual_rig(built):
-    """A running closed-loop virtual rig (rig.virtual_rig); skips with the reason without
-    umockdev or the firmware tools."""
+def rig_lock():
+    """One closed-loop virtual rig at a time on this machine, whichever worker runs it: two
+    (firmware in simavr + a renderer each, paced to real time) overload two cores. A lock file,
+    released by the kernel if a worker dies."""
+    import fcntl
+    import os
+    import tempfile
+    from pathlib import Path
+
+    with open(Path(tempfile.gettempdir()) / f"evdnerf-virtual-rig-{os.getuid()}.lock", "w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+@pytest.fixture
+def virtual_rig(built, rig_lock):
+    """A running closed-loop virtual rig (rig.virtual_rig), one at a time (``rig_lock``); skips
+    with the reason without umockdev or the firmware tools."""
     from rig.camera.virtual.usb import umockdev_available
     from rig.virtual_arduino import missing_tools
 

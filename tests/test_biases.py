@@ -129,7 +129,10 @@ def test_imx636_table_matches_openeb():
         "bias_diff_off": 0x1018, "bias_refr": 0x1020}
     assert R.BIAS_RANGES["bias_refr"] == BiasRange(-50, 255, -20, 235)
     assert R.bias_register_value(0x4D) == 0x11A1004D
-    assert R.bias_register_value(300) == 0x11A100FF and R.bias_register_value(-4) == 0x11A10000
+    assert R.bias_register_value(255) == 0x11A100FF and R.bias_register_value(0) == 0x11A10000
+    for outside in (300, -4):                   # refused, never clamped (EVK4.set_biases checks first)
+        with pytest.raises(ValueError, match="outside 0..255"):
+            R.bias_register_value(outside)
 
 
 def test_evk4_register_sequences_pin_the_source_values():

@@ -18,8 +18,6 @@ from rig.clock import ClockMap
 from rig.pin_feed import JointTrack, PinFeed
 from rig.turntable import turntable_pose, view_azimuth_deg
 
-#: one closed-loop virtual rig at a time (setup.cfg: --dist loadgroup)
-pytestmark = pytest.mark.xdist_group("virtual_rig")
 
 EVDNERF = [sys.executable, "-m", "evdnerf_ros"]
 

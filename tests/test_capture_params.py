@@ -14,8 +14,6 @@ import yaml
 
 from rig.capture import CaptureOptions
 
-#: one closed-loop virtual rig at a time (setup.cfg: --dist loadgroup)
-pytestmark = pytest.mark.xdist_group("virtual_rig")
 
 
 

@@ -14,8 +14,6 @@ from evdnerf_ros.cli import main
 from evdnerf_ros.demo import choose_source
 from evdnerf_ros.errors import InputError
 
-#: one closed-loop virtual rig at a time (setup.cfg: --dist loadgroup)
-pytestmark = pytest.mark.xdist_group("virtual_rig")
 
 EVDNERF = [sys.executable, "-m", "evdnerf_ros"]
 
@@ -28,7 +26,7 @@ def _need_rig():
         pytest.skip(why)
 
 
-def test_demo_captures_its_session_on_the_virtual_rig(tmp_path):
+def test_demo_captures_its_session_on_the_virtual_rig(tmp_path, rig_lock):
     """Capture -> round trip -> sync (checked against the twin's truth) -> convert (cropped to the
     scene's window) -> short training -> eval and report, on the rig's session."""
     _need_rig()
