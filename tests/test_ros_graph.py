@@ -198,7 +198,8 @@ def test_fastdds_peer_sees_our_graph_events_and_parameters(fastdds_peer, tmp_pat
     assert (guid, seq) == (0xFA57DD5, 1)
     values = [from_parameter_value(v)[1] for v in
               rostypes.deserialize(body, "rcl_interfaces/srv/GetParameters_Response").values]
-    assert values == [DEFAULT_THRESHOLD, "fork", None]
+    # the peer's 20 get calls and its set race: its last get may already see the new c_pos
+    assert values[0] in (DEFAULT_THRESHOLD, 0.31) and values[1:] == ["fork", None], values
     guid, seq, body = split_request((tmp_path / "reply1.bin").read_bytes())
     [res] = rostypes.deserialize(body, "rcl_interfaces/srv/SetParameters_Response").results
     assert res.successful and node.params["c_pos"] == 0.31
