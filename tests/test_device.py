@@ -101,3 +101,81 @@ def test_cuda_absent_is_an_error_in_eval_and_publish(tmp_path, no_cuda, capsys):
     assert main(["eval", str(run_dir), str(tmp_path / "none.h5"), "--device", "cuda"]) == 2
     err = capsys.readouterr().err
     assert "device 'cuda' requested" in err and "pip install" in err
+
+
+# ---------------------------------------------------------------------- training
+SMALL = {"rays": 64, "n_samples": 8, "occupancy_resolution": 8, "occupancy_warmup": 2, "occupancy_every": 2,
+         "eval_every": 0, "checkpoint_every": 0, "log_every": 0,
+         "field": {"resolutions": [8, 16], "features": 4, "time_resolution": 8}}
+
+
+def _trainer(ts, device, **cfg):
+    from evdnerf_ros.train.trainer import Trainer
+
+    return Trainer(ts, {**SMALL, **cfg}, iters=6, log=lambda *_: None, device=device)
+
+
+def test_training_on_the_cpu_keeps_every_tensor_there(tiny_train_h5, no_cuda):
+    from evdnerf_ros.io.trainingset import TrainingSet
+
+    with TrainingSet(tiny_train_h5) as ts:
+        for device in ("cpu", "auto"):
+            tr = _trainer(ts, device, learn_thresholds=True)
+            assert tr.device == torch.device("cpu")
+            tr.train()
+            assert all(p.device.type == "cpu" for p in tr.field.parameters())
+            assert all(p.device.type == "cpu" for p in tr.thresholds.parameters())
+            assert tr.occupancy.occupied.device.type == "cpu" and tr.dynamic.mask.device.type == "cpu"
+            batch = tr.sampler.sample(8)
+            assert {t.device.type for t in (batch.origins, batch.dirs, batch.dl, batch.on_event, batch.counts)} == {"cpu"}
+            assert tr.gen.device.type == "cpu"
+
+
+def test_train_cuda_absent_is_an_error_before_the_run_folder(tiny_train_h5, tmp_path, no_cuda, capsys):
+    from evdnerf_ros.cli import main
+
+    run = tmp_path / "run"
+    assert main(["train", str(tiny_train_h5), "-o", str(run), "--iters", "2", "--device", "cuda"]) == 2
+    err = capsys.readouterr().err
+    assert "--device: device 'cuda' requested" in err and "pip install" in err
+    assert not run.exists()
+
+
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU here (runs on a GPU machine)")
+
+
+@cuda
+def test_cuda_training_matches_the_cpu_and_resumes_across_devices(tiny_train_h5, tmp_path):
+    """The same run on the GPU: every tensor there, losses as on the CPU (float32 sums in another
+    order, and a different jitter stream: close, not equal), checkpoints readable on the CPU."""
+    from evdnerf_ros.io.trainingset import TrainingSet
+    from evdnerf_ros.train.trainer import Trainer
+
+    with TrainingSet(tiny_train_h5) as ts:
+        losses = {}
+        for device in ("cpu", "cuda"):
+            tr = _trainer(ts, device, perturb=False)
+            losses[device] = [tr.step() for _ in range(6)]
+            if device == "cuda":
+                assert all(p.device.type == "cuda" for p in tr.field.parameters())
+                assert tr.occupancy.occupied.device.type == "cuda" and tr.dynamic.mask.device.type == "cuda"
+        assert np.allclose(losses["cpu"], losses["cuda"], rtol=2e-3, atol=1e-6), losses
+        tr = Trainer(ts, SMALL, iters=4, run_dir=tmp_path, log=lambda *_: None, device="cuda")
+        tr.train()
+        tr2 = Trainer(ts, SMALL, iters=8, run_dir=tmp_path, log=lambda *_: None, device="cpu")
+        tr2.resume(tmp_path / "checkpoint.pt")
+        assert tr2.iteration == 4 and all(p.device.type == "cpu" for p in tr2.field.parameters())
+        tr2.train()
+        assert np.isfinite(tr2.last_loss)
+
+
+@cuda
+def test_cuda_eval_and_publish_match_the_cpu(tiny_train_h5, tmp_path):
+    from evdnerf_ros.eval.evaluate import run_eval
+    from evdnerf_ros.train.trainer import run_train
+
+    run_train(tiny_train_h5, tmp_path / "run", config=SMALL, iters=20, log=lambda *_: None, device="cuda")
+    res = {d: run_eval(tmp_path / "run", tiny_train_h5, n_windows=8, max_views=1, factors=(1,), log=lambda *_: None,
+                       device=d) for d in ("cpu", "cuda")}
+    a, b = (r["val_windows_x1"]["continuous"]["psnr"] for r in (res["cpu"], res["cuda"]))
+    assert abs(a - b) < 0.05, (a, b)

@@ -18,8 +18,9 @@ def _cmd_train(args) -> int:
         raise EvdnerfError("give a budget: --minutes M or --iters N")
     eval_fn = None if args.no_eval else validation_eval(max_views=args.eval_views)
     result = run_train(args.train_set, args.output, config=args.config, minutes=args.minutes,
-                       iters=args.iters, init=args.init, overwrite=args.overwrite, eval_fn=eval_fn)
-    print(f"{args.output}: {result['iterations']} iterations in {result['wall_s']:.1f} s, "
+                       iters=args.iters, init=args.init, overwrite=args.overwrite, eval_fn=eval_fn,
+                       device=args.device)
+    print(f"{args.output}: {result['iterations']} iterations in {result['wall_s']:.1f} s on {result['device']}, "
           f"final loss {result['loss']}")
     return 0
 
@@ -71,6 +72,9 @@ def register(sub) -> None:
                    help="validation views evaluated periodically (default %(default)s)")
     p.add_argument("--no-eval", action="store_true", help="no periodic validation")
     p.add_argument("--overwrite", action="store_true", help="start RUN afresh")
+    p.add_argument("--device", default="auto", type=str.lower, choices=["auto", "cpu", "cuda"],
+                   help="where the field is trained: auto (cuda when available), cpu or cuda; not part of "
+                        "the config, so a run may resume on another device (default %(default)s)")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("eval", help="events metrics of a trained run",

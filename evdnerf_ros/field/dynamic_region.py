@@ -89,6 +89,11 @@ class DynamicRegion:
         mask = (hit >= 1) & (hit >= seen - int(misses))
         return cls(torch.from_numpy(mask.reshape(r, r, r)))
 
+    def to(self, device) -> "DynamicRegion":
+        """The mask moved to ``device`` (where the points it is queried with live)."""
+        self.mask = self.mask.to(device)
+        return self
+
     def query(self, x: torch.Tensor) -> torch.Tensor:
         """(N, 3) normalised points -> (N,) bool, True where the scene may change."""
         return grid_lookup(self.mask, x)
@@ -104,11 +109,11 @@ class DynamicRegion:
         diag = float(np.linalg.norm(hi - lo))
         step = float(np.min((hi - lo) / np.array(self.resolution))) / 4.0
         n_steps = max(2, int(np.ceil(diag / step)) + 1)
-        out = torch.zeros(origins.shape[0], dtype=torch.bool)
+        out = torch.zeros(origins.shape[0], dtype=torch.bool, device=origins.device)
         for s in range(0, origins.shape[0], chunk):
             o, d = origins[s:s + chunk], dirs[s:s + chunk]
             t0, t1, hit = ray_box_intersect(o, d, box, near, far)
-            u = torch.linspace(0.0, 1.0, n_steps)
+            u = torch.linspace(0.0, 1.0, n_steps, device=origins.device)
             z = t0[:, None] + (t1 - t0)[:, None] * u[None, :]
             pts = o[:, None, :] + d[:, None, :] * z[..., None]
             dyn = self.query(normalize_points(pts.reshape(-1, 3), box)).reshape(-1, n_steps)

@@ -39,9 +39,15 @@ class OccupancyGrid:
         self.occupied = torch.ones(r, dtype=torch.bool)
         self.density_max = torch.full(r, float("inf"))
 
-    def cell_centres(self) -> torch.Tensor:
+    def to(self, device) -> "OccupancyGrid":
+        """The grids moved to ``device`` (where the points it is queried with live)."""
+        self.occupied = self.occupied.to(device)
+        self.density_max = self.density_max.to(device)
+        return self
+
+    def cell_centres(self, device=None) -> torch.Tensor:
         """(Rx*Ry*Rz, 3) normalised cell centres, C order (x slowest)."""
-        axes = [(torch.arange(n, dtype=torch.float32) + 0.5) / n * 2.0 - 1.0
+        axes = [(torch.arange(n, dtype=torch.float32, device=device) + 0.5) / n * 2.0 - 1.0
                 for n in self.resolution]
         g = torch.meshgrid(*axes, indexing="ij")
         return torch.stack(g, dim=-1).reshape(-1, 3)
@@ -49,12 +55,15 @@ class OccupancyGrid:
     @torch.no_grad()
     def update(self, field, times: Sequence[float] = (0.0, 0.5, 1.0),
                threshold: float = 0.01, dilate: int = 1, chunk: int = 65536):
-        """occupied = dilate(max_t density(cell centre, t) > threshold)."""
-        x = self.cell_centres()
-        dmax = torch.zeros(x.shape[0])
+        """occupied = dilate(max_t density(cell centre, t) > threshold), on the field's device."""
+        from ..device import module_device
+
+        dev = module_device(field)
+        x = self.cell_centres(dev)
+        dmax = torch.zeros(x.shape[0], device=dev)
         for s in range(0, x.shape[0], chunk):
             xs = x[s:s + chunk]
-            cols = [torch.full((xs.shape[0], 1), float(t)) for t in times]
+            cols = [torch.full((xs.shape[0], 1), float(t), device=dev) for t in times]
             for dens, _ in field.evaluate_times(xs, cols):
                 dmax[s:s + chunk] = torch.maximum(dmax[s:s + chunk], dens.float())
         self.density_max = dmax.reshape(self.resolution)

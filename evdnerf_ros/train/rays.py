@@ -116,6 +116,14 @@ class RaySampler:
         self._counts = None                    # (V, n, P, 2) int16/int32 with keep_counts
         self._pix: dict = {}
         self._centroids: dict = {}
+        self.device = torch.device("cpu")
+
+    def to(self, device) -> "RaySampler":
+        """Batches on ``device`` from now on (the rays of every view are copied there once;
+        the event tables stay in host memory and only a batch's values travel)."""
+        self.device = torch.device(device)
+        self.origins, self.dirs = self.origins.to(self.device), self.dirs.to(self.device)
+        return self
 
     # ----- window sets
     def set_windows(self, n: int) -> None:
@@ -195,19 +203,20 @@ class RaySampler:
         n_ev = int(round(self.frac * rays))
         # the first n_ev rays: event pixels (a view without any keeps its uniform pixel)
         _pick_per_view(pix[:n_ev], vi[:n_ev], rng.random(n_ev), lambda v: self.event_pixels(v, k))
-        vi_t = torch.as_tensor(vi)
-        pix_t = torch.as_tensor(pix)
-        dl = torch.as_tensor(self._dl[vi, k, pix])
+        dev = self.device
+        vi_t = torch.as_tensor(vi, device=dev)
+        pix_t = torch.as_tensor(pix, device=dev)
+        dl = torch.as_tensor(self._dl[vi, k, pix], device=dev)
         on_event = np.zeros(rays, bool)
         for v in np.unique(vi):                    # mark every ray whose pixel had events
             sel = vi == v
             on_event[sel] = np.isin(pix[sel], self.event_pixels(int(v), k))
         tn = self.ts.normalized_time(self._edges[k:k + 2])
         return RayBatch(origins=self.origins[vi_t, pix_t], dirs=self.dirs[vi_t, pix_t], dl=dl,
-                        on_event=torch.as_tensor(on_event), t0=float(tn[0]), t1=float(tn[1]),
+                        on_event=torch.as_tensor(on_event, device=dev), t0=float(tn[0]), t1=float(tn[1]),
                         window=k, n_windows=self._n, views=vi, pixels=pix,
                         counts=None if self._counts is None
-                        else torch.as_tensor(self._counts[vi, k, pix].astype(np.int32)))
+                        else torch.as_tensor(self._counts[vi, k, pix].astype(np.int32), device=dev))
 
 
 @dataclass
@@ -247,11 +256,19 @@ class FrameSampler:
         self.rng = np.random.default_rng(seed)
         self.origins, self.dirs = view_rays(train_set, self.views)
         self.P = train_set.width * train_set.height
+        self.device = torch.device("cpu")
+
+    def to(self, device) -> "FrameSampler":
+        """Batches on ``device`` from now on (as ``RaySampler.to``)."""
+        self.device = torch.device(device)
+        self.origins, self.dirs = self.origins.to(self.device), self.dirs.to(self.device)
+        return self
 
     def sample(self, rays: int) -> FrameBatch:
         f = int(self.frame_index[self.rng.integers(len(self.frame_index))])
         vi = self.rng.integers(len(self.views), size=rays)
         pix = self.rng.integers(self.P, size=rays)
-        vt, pt = torch.as_tensor(vi), torch.as_tensor(pix)
+        vt, pt = torch.as_tensor(vi, device=self.device), torch.as_tensor(pix, device=self.device)
         return FrameBatch(origins=self.origins[vt, pt], dirs=self.dirs[vt, pt],
-                          grey=torch.as_tensor(self.frames[vi, f, pix]), t=float(self.t_norm[f]))
+                          grey=torch.as_tensor(self.frames[vi, f, pix], device=self.device),
+                          t=float(self.t_norm[f]))

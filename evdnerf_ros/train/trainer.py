@@ -69,7 +69,7 @@ def plane_regularisers(field, cfg: TrainConfig) -> torch.Tensor | None:
     if not hasattr(field, "space_planes") or not (cfg.tv_weight or cfg.time_smooth_weight
                                                   or cfg.time_l1_weight):
         return None
-    total = torch.zeros(())
+    total = torch.zeros((), device=field.time_planes[0].device)
     if cfg.tv_weight:
         for p in field.space_planes:
             total = total + cfg.tv_weight * (((p[..., 1:, :] - p[..., :-1, :]) ** 2).mean()
@@ -86,9 +86,15 @@ def plane_regularisers(field, cfg: TrainConfig) -> torch.Tensor | None:
 class Trainer:
     def __init__(self, train_set, config=None, *, run_dir=None, iters: int | None = None,
                  minutes: float | None = None, eval_fn: Callable | None = None,
-                 log: Callable = print):
+                 log: Callable = print, device="cpu"):
+        """``device``: auto, cpu or cuda (``evdnerf_ros.device``): where the field, the
+        batches and every grid live; a run-time choice, not part of the config, so a run may
+        resume on another device."""
+        from ..device import resolve_device
+
         self.cfg = resolve_config(config)
         cfg = self.cfg
+        self.device = resolve_device(device, f"{run_dir or 'training'}: device")
         self.ts = train_set
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.log = log
@@ -108,20 +114,20 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.box = np.asarray(cfg.box, np.float64) if cfg.box is not None else \
             default_box(train_set, cfg.box_fraction)
-        self.field = make_field(cfg.backbone, **cfg.field)
+        self.field = make_field(cfg.backbone, **cfg.field).to(self.device)
         self.params = [p for p in self.field.parameters() if p.requires_grad]
         groups = [{"params": self.params, "lr_scale": 1.0}]
         self.c_pos, self.c_neg = (float(c) for c in train_set.thresholds)
         self.thresholds = None
         if cfg.learn_thresholds:
-            self.thresholds = LearnedThresholds(self.c_pos, self.c_neg)
+            self.thresholds = LearnedThresholds(self.c_pos, self.c_neg).to(self.device)
             groups.append({"params": list(self.thresholds.parameters()),
                            "lr_scale": cfg.threshold_lr / cfg.lr})
             self.params = self.params + list(self.thresholds.parameters())
         self.opt = torch.optim.Adam(groups, lr=cfg.lr)
-        self.gen = torch.Generator().manual_seed(cfg.seed + 1)
-        self.occupancy = (OccupancyGrid(cfg.occupancy_resolution) if cfg.occupancy_resolution
-                          else None)
+        self.gen = torch.Generator(self.device).manual_seed(cfg.seed + 1)
+        self.occupancy = (OccupancyGrid(cfg.occupancy_resolution).to(self.device)
+                          if cfg.occupancy_resolution else None)
         self.dynamic = (DynamicRegion.from_event_footprint(
             train_set, self.box, resolution=cfg.dynamic_resolution,
             min_events=cfg.dynamic_min_events, dilate_px=cfg.dynamic_dilate_px,
@@ -129,8 +135,10 @@ class Trainer:
             if cfg.dynamic_region and cfg.supervision == "events" else None)
         self.sampler = RaySampler(train_set, event_ray_fraction=cfg.event_ray_fraction,
                                   seed=cfg.seed, dynamic=self.dynamic, box=self.box,
-                                  keep_counts=cfg.learn_thresholds)
-        self.frame_sampler = (FrameSampler(train_set, seed=cfg.seed)
+                                  keep_counts=cfg.learn_thresholds).to(self.device)
+        if self.dynamic is not None:     # after the sampler picked its rays on the host
+            self.dynamic.to(self.device)
+        self.frame_sampler = (FrameSampler(train_set, seed=cfg.seed).to(self.device)
                               if cfg.supervision == "frames" else None)
         self.iteration = 0
         self.train_s = 0.0
@@ -259,7 +267,7 @@ class Trainer:
     # ------------------------------------------------------------------ state
     def rng_state(self) -> dict:
         return {"global": global_rng_states(), "sampler": self.sampler.rng.bit_generator.state,
-                "perturb": self.gen.get_state(),
+                "perturb": self.gen.get_state(), "perturb_device": self.device.type,
                 "frames": None if self.frame_sampler is None
                 else self.frame_sampler.rng.bit_generator.state}
 
@@ -311,17 +319,24 @@ class Trainer:
         self._metrics_due = bool(ex.get("metrics_due", False))
         self.last_loss = float(ex.get("last_loss", float("nan")))
         if self.occupancy is not None and run.occupancy is not None:
-            self.occupancy.occupied = run.occupancy.occupied
+            self.occupancy.occupied = run.occupancy.occupied.to(self.device)
         if self.thresholds is not None:
             self.thresholds.load_state_dict(ex["thresholds"])
         if run.dynamic is not None:
-            self.dynamic = run.dynamic
+            self.dynamic = run.dynamic.to(self.device)
         rng = data["rng"]
         set_global_rng_states(rng["global"])
         self.sampler.rng.bit_generator.state = rng["sampler"]
         if self.frame_sampler is not None:
             self.frame_sampler.rng.bit_generator.state = rng["frames"]
-        self.gen.set_state(rng["perturb"])
+        if rng.get("perturb_device", "cpu") == self.device.type:
+            self.gen.set_state(rng["perturb"])
+        else:
+            # a CPU and a CUDA generator's states do not convert: the sample jitter restarts
+            # from a seed of its own (the run goes on, no longer bit-exact with one device)
+            self.gen.manual_seed(self.cfg.seed + 1 + self.iteration)
+            self.log(f"{path}: trained on {rng.get('perturb_device', 'cpu')}, resumed on {self.device.type}: "
+                     "the sample jitter is reseeded (the resumed run is not bit-exact)")
 
     def init_from(self, path) -> None:
         """Weights only (the paper's fork -> knife transfer); optimiser and counters fresh."""
@@ -435,7 +450,8 @@ class Trainer:
         ckpt = self.save() if self.run_dir is not None else None
         return {"iterations": self.iteration, "wall_s": self.train_s, "elapsed_s": self.elapsed_s,
                 "loss": self.last_loss, "skipped": self.skipped,
-                "checkpoint": str(ckpt) if ckpt else None, "box": self.box.tolist()}
+                "checkpoint": str(ckpt) if ckpt else None, "box": self.box.tolist(),
+                "device": str(self.device)}
 
 
 def check_budget(value, name: str, key: str):
@@ -464,7 +480,7 @@ def _finite(obj):
 # ---------------------------------------------------------------------- entry point
 def run_train(train_h5, run_dir, *, config=None, minutes: float | None = None,
               iters: int | None = None, init=None, overwrite: bool = False,
-              log: Callable = print, eval_fn: Callable | None = None) -> dict:
+              log: Callable = print, eval_fn: Callable | None = None, device="auto") -> dict:
     """Train on TRAIN.h5 into RUN (``evdnerf train``).
 
     RUN holds config.yaml, checkpoint.pt, metrics.jsonl and the lock file
@@ -478,20 +494,25 @@ def run_train(train_h5, run_dir, *, config=None, minutes: float | None = None,
     run (fork -> knife transfer).  ``iters`` is the run's total iteration count (also on
     resume); ``minutes`` its total training minutes (both range-checked as ``--iters`` /
     ``--minutes``).  Ctrl-C or SIGTERM writes a checkpoint first (``Trainer.train``): the
-    same command again resumes.
+    same command again resumes.  ``device``: auto, cpu or cuda (``evdnerf_ros.device``;
+    checked before RUN is touched); checkpoints are device-independent.
     """
+    from ..device import resolve_device
+
     iters = check_budget(iters, "--iters", "iters")
     minutes = check_budget(minutes, "--minutes", "minutes")
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(f"{run_dir}: exists and is not a folder; choose a folder for the run")
     given = None if config is None else resolve_config(config)   # checked before RUN is touched
+    device = resolve_device(device, "--device")
     created = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
     with RunLock(run_dir, log=log) as lock:
         try:
             return _train_locked(train_h5, run_dir, lock, given, iters=iters, minutes=minutes,
-                                 init=init, overwrite=overwrite, log=log, eval_fn=eval_fn)
+                                 init=init, overwrite=overwrite, log=log, eval_fn=eval_fn,
+                                 device=device)
         except BaseException:
             if created:
                 _remove_if_empty(run_dir, lock)
@@ -509,7 +530,7 @@ def _remove_if_empty(run_dir: Path, lock: RunLock) -> None:
 
 
 def _train_locked(train_h5, run_dir: Path, lock: RunLock, given, *, iters, minutes, init,
-                  overwrite, log, eval_fn) -> dict:
+                  overwrite, log, eval_fn, device) -> dict:
     from ..io.trainingset import TrainingSet
 
     ckpt, metrics, config_path = (run_dir / n for n in (CHECKPOINT_NAME, METRICS_NAME, CONFIG_NAME))
@@ -539,7 +560,7 @@ def _train_locked(train_h5, run_dir: Path, lock: RunLock, given, *, iters, minut
         cfg = TrainConfig()
     with TrainingSet(train_h5) as ts:
         tr = Trainer(ts, cfg, run_dir=run_dir, iters=iters, minutes=minutes, eval_fn=eval_fn,
-                     log=log)
+                     log=log, device=device)
         if resume:
             tr.resume(ckpt, run)
             dropped = truncate_metrics(metrics, tr.iteration)

@@ -1,0 +1,186 @@
+"""Train, eval and publish on a GPU (the ``device`` setting), against the CPU of the same machine.
+
+Runs where a CUDA GPU is present (``--device cuda``; ``--device cpu`` runs the same script on a
+CPU, e.g. to check it).  Data: the quality benchmark's Jet-Down set (128x128, 18 + 18 views,
+``bench_quality.build_set``; ``--quick``: 64x64, 12 + 4 views).
+
+1. **Step time**: ms per training iteration of each config below on the device and on the CPU
+   (all of the machine's cores), after a warm-up, same data and seed.
+2. **Quality against wall time on the device**: each config trained ``--seconds`` with the
+   periodic validation (32 windows, 4 validation views: events-PSNR, its all-zero floor, the true
+   scene's score, the fraction of the floor-to-truth margin closed), then scored at 32 / 128 /
+   256 windows (``bench_quality.final_scores``); and the wall time of ``evdnerf eval`` (x1).
+3. **Publisher**: from the default config's run, published events against the simulator's along
+   the same path (``eval.published``) at several resolutions, a static novel view and the
+   training ring (orbit); the publisher's real-time factor on the device (the truth is simulated
+   on the CPU and not timed).
+
+Usage: python bench/bench_gpu.py [--device cuda] [--seconds S] [--quick] [--work DIR]
+       -> bench/results/gpu.{json,png}
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from _common import arg_parser, machine, pyplot, read_results, save_figure, write_json, write_results
+
+#: configs compared (changes against the training defaults); a GPU gives more rays per step
+#: nearly for free, so a bigger batch is the first thing worth measuring there.
+CONFIGS = {"default": {}, "rays-4096": {"rays": 4096}}
+BASE = {"eval_every": 100, "checkpoint_every": 0, "log_every": 0}
+
+
+def step_times(train_set, device: str, cfg: dict, steps: int) -> dict:
+    """Median and mean ms per iteration of ``steps`` iterations after 5 warm-up ones."""
+    import numpy as np
+    import torch
+
+    from evdnerf_ros.train.trainer import Trainer
+
+    tr = Trainer(train_set, {**BASE, **cfg, "eval_every": 0}, iters=steps + 5, log=lambda *_: None, device=device)
+    for _ in range(5):
+        tr.step()
+    times = []
+    for _ in range(steps):
+        if tr.device.type == "cuda":
+            torch.cuda.synchronize()
+        t = time.perf_counter()
+        tr.step()                      # float(loss) inside waits for the GPU
+        times.append(time.perf_counter() - t)
+    return {"device": str(tr.device), "median_ms": 1000 * float(np.median(times)),
+            "mean_ms": 1000 * float(np.mean(times)), "steps": steps}
+
+
+def main(argv=None):
+    ap = arg_parser(__doc__, quick="64x64 Jet-Down, short runs (a check of the script)")
+    ap.add_argument("--device", default="cuda", help="auto, cpu or cuda (default cuda)")
+    ap.add_argument("--seconds", type=float, default=None, help="training seconds per config (default 90, quick 20)")
+    ap.add_argument("--steps", type=int, default=None, help="timed iterations per config and device (default 10)")
+    ap.add_argument("--resolutions", default=None, help="publisher sizes, comma-separated (default 64,128,256)")
+    ap.add_argument("--span", type=float, default=0.1, help="published span in seconds (default 0.1)")
+    ap.add_argument("--work", default="/tmp/bench_gpu")
+    ap.add_argument("--set", default=None, help="an existing Jet-Down TRAIN.h5 (default: build it in --work)")
+    ap.add_argument("--replot", action="store_true", help="redraw the PNG from the JSON")
+    args = ap.parse_args(argv)
+    if args.replot:
+        return plot(read_results(args.out, "gpu"), args.out / "gpu.png")
+    import torch
+
+    import bench_quality
+    from evdnerf_ros.device import resolve_device
+    from evdnerf_ros.eval.evaluate import run_eval, validation_eval
+    from evdnerf_ros.eval.published import published_vs_true
+    from evdnerf_ros.io.trainingset import TrainingSet
+    from evdnerf_ros.train.run import TrainedRun
+    from evdnerf_ros.train.trainer import run_train
+
+    dev = resolve_device(args.device, "--device")
+    torch.set_num_threads(os.cpu_count() or 1)
+    seconds = args.seconds or (20.0 if args.quick else 90.0)
+    steps = args.steps or 10
+    sizes = [int(s) for s in (args.resolutions or ("32,64" if args.quick else "64,128,256")).split(",")]
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    setting = dict(bench_quality.PROXY if args.quick else bench_quality.FULL)
+    train_h5 = Path(args.set) if args.set else bench_quality.build_set(work, setting)
+    result = {"machine": machine("torch"), "device": str(dev),
+              "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
+              "torch_cuda": torch.version.cuda, "set": str(train_h5.name), "seconds": seconds,
+              "configs": CONFIGS, "steps": {}, "runs": {}, "publisher": []}
+    log = lambda m: print(m, flush=True)  # noqa: E731
+
+    with TrainingSet(train_h5) as ts:
+        for name, cfg in CONFIGS.items():
+            for d in dict.fromkeys([str(dev), "cpu"]):
+                r = step_times(ts, d, cfg, steps)
+                result["steps"].setdefault(name, {})[d] = r
+                log(f"step time {name} on {d}: {r['median_ms']:.1f} ms (median of {steps})")
+    partial = args.out / "gpu.partial.json"          # what a run cut short still leaves
+    write_json(partial, result)
+
+    for name, cfg in CONFIGS.items():
+        run = work / f"run-{name}"
+        summary = run_train(train_h5, run, config={**BASE, **cfg}, minutes=seconds / 60.0, overwrite=True,
+                            eval_fn=validation_eval(n_windows=32, max_views=4), log=lambda *_: None, device=str(dev))
+        trained = TrainedRun.load(run)
+        with TrainingSet(train_h5) as ts:
+            final = bench_quality.final_scores(trained.field.to(dev), ts, trained.config, trained.box,
+                                               trained.dynamic, setting["final_views"], work, train_h5.stem)
+        curve = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+        result["runs"][name] = {
+            "iterations": summary["iterations"], "train_s": summary["wall_s"],
+            "ms_per_iter": 1000 * summary["wall_s"] / max(1, summary["iterations"]),
+            "curve": [{k: m.get(k) for k in ("iter", "wall_s", "loss", "val_psnr", "val_psnr_zero_floor",
+                                             "val_psnr_truth", "val_margin_closed")} for m in curve],
+            "final": final}
+        log(f"{name}: {summary['iterations']} it in {summary['wall_s']:.0f} s; margin closed "
+            + ", ".join(f"{k} {100 * v['margin_closed']:.1f} %" for k, v in final.items()
+                        if v["margin_closed"] is not None))
+        write_json(partial, result)
+    # `evdnerf eval` as a user runs it (validation, training and moving splits at the trained
+    # windows; the true scene is scored on the CPU either way)
+    t = time.perf_counter()
+    run_eval(work / "run-default", train_h5, max_views=4, factors=(1,), log=lambda *_: None, device=str(dev))
+    result["eval_s_x1"] = time.perf_counter() - t
+    log(f"evdnerf eval (x1, 4 views per split) on {dev}: {result['eval_s_x1']:.1f} s")
+
+    run = work / "run-default"
+    for path, size in [("static", s) for s in sizes] + [("orbit", sizes[min(1, len(sizes) - 1)])]:
+        r = published_vs_true(run, train_h5, n_windows=16, static=path == "static",
+                              duration_ns=int(args.span * 1e9), resolution=(size, size),
+                              publisher={"device": str(dev)}, log=lambda *_: None)
+        row = {"path": path, "width": size, "height": size, "rtf": r["publisher"]["rtf"],
+               "wall_s": r["publisher"]["wall_s"], "psnr": r["published"]["psnr"],
+               "zero_floor": r["zero_floor"]["psnr"], "true_render": r["true_render"]["psnr"],
+               "margin_closed": r["margin_closed"]}
+        result["publisher"].append(row)
+        log(f"publish {path} {size}x{size} on {dev}: RTF {row['rtf']:.3g}, events PSNR {row['psnr']:.2f} dB "
+            f"(floor {row['zero_floor']:.2f}, true render {row['true_render']:.2f})")
+        write_json(partial, result)
+    write_results(args.out, "gpu", result, plot)
+    partial.unlink()
+
+
+def plot(result: dict, path: Path) -> None:
+    fig, ax = pyplot().subplots(1, 3, figsize=(16, 4.6))
+    for name, r in result["runs"].items():
+        pts = [(m["wall_s"], 100 * m["val_margin_closed"]) for m in r["curve"] if m.get("val_margin_closed") is not None]
+        if pts:
+            x, y = zip(*pts)
+            ax[0].plot(x, y, marker=".", label=f"{name} ({r['ms_per_iter']:.1f} ms/it)")
+    ax[0].axhline(0, color="grey", ls="--", lw=1)
+    ax[0].set_xlabel(f"training wall time on {result['device']} (s)")
+    ax[0].set_ylabel("floor-to-truth margin closed (%, 32 windows)")
+    ax[0].set_title(f"{result['set']} on {result.get('gpu') or result['device']}", fontsize=9)
+    ax[0].legend(fontsize=8)
+    names = list(result["steps"])
+    devs = sorted({d for v in result["steps"].values() for d in v})
+    for j, d in enumerate(devs):
+        ax[1].bar([i + 0.4 * (j - (len(devs) - 1) / 2) for i in range(len(names))],
+                  [result["steps"][n].get(d, {}).get("median_ms", 0) for n in names], width=0.4, label=d)
+    ax[1].set_xticks(range(len(names)), names)
+    ax[1].set_yscale("log")
+    ax[1].set_ylabel("ms per training iteration (median)")
+    ax[1].set_title(f"step time, CPU = {result['machine']['cpus']} cores", fontsize=9)
+    ax[1].legend(fontsize=8)
+    for camera, marker in (("static", "o"), ("orbit", "s")):
+        rows = [r for r in result["publisher"] if r["path"] == camera]
+        if rows:
+            ax[2].plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker=marker, label=f"{camera} camera")
+    ax[2].axhline(1, color="k", ls="--", lw=1, label="real time")
+    ax[2].set_xscale("log", base=2)
+    ax[2].set_yscale("log")
+    ax[2].set_xlabel("resolution (square, px)")
+    ax[2].set_ylabel("publisher real-time factor")
+    ax[2].set_title("publishing from the trained run", fontsize=9)
+    ax[2].legend(fontsize=8)
+    save_figure(fig, path, dpi=110)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
