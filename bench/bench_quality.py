@@ -94,12 +94,44 @@ def merged(*cfgs: dict) -> dict:
     return out
 
 
+def final_scores(field, ts, cfg, box, dynamic, final_views: dict, work: Path, set_stem: str) -> dict:
+    """{"x<factor>": events-PSNR, floor, true scene, margin closed} of a trained field on the first
+    validation views at 32 x factor windows ({factor: views}); the true scene's scores are cached
+    in WORK (they never change for a set)."""
+    import torch
+
+    from evdnerf_ros.eval.evaluate import evaluate_views, static_views
+    from evdnerf_ros.eval.truth import TrueScene
+
+    truth = TrueScene.of(ts)[0]
+    final = {}
+    field = field.eval()
+    with torch.no_grad():
+        for factor, nviews in final_views.items():
+            views = static_views(ts, ts.val_views)[:int(nviews)]
+            cache = work / f"truth-{set_stem}-x{factor}-{nviews}.pkl"
+            tm = pickle.loads(cache.read_bytes()) if cache.exists() else None
+            _, _, m = evaluate_views(field, ts, views, 32 * int(factor), box=box,
+                                     n_samples=cfg.n_samples, log_eps=cfg.log_eps, near=cfg.near,
+                                     far=cfg.far, background=cfg.background, dynamic=dynamic,
+                                     truth=truth, truth_metrics=tm)
+            if tm is None and "truth" in m:
+                cache.write_bytes(pickle.dumps(m["truth"]))
+            final[f"x{factor}"] = {
+                "views": len(views), "windows": 32 * int(factor),
+                "psnr": m["continuous"]["psnr"], "psnr_quantized": m["quantized"]["psnr"],
+                "zero_floor": m["zero_floor"]["psnr"],
+                "truth": m["truth"]["continuous"]["psnr"] if "truth" in m else None,
+                "margin_closed": m.get("margin_closed", {}).get("continuous"),
+                "margin_closed_quantized": m.get("margin_closed", {}).get("quantized")}
+    return final
+
+
 def child(args) -> None:
     """One training run + its final evaluation, in this process; prints one JSON line."""
     import torch
 
-    from evdnerf_ros.eval.evaluate import evaluate_views, static_views, validation_eval
-    from evdnerf_ros.eval.truth import TrueScene
+    from evdnerf_ros.eval.evaluate import validation_eval
     from evdnerf_ros.io.trainingset import TrainingSet
     from evdnerf_ros.train.trainer import Trainer
 
@@ -114,28 +146,8 @@ def child(args) -> None:
         curve = []
         tr._write_metrics = curve.append          # metrics lines into memory (no run folder)
         summary = tr.train()
-        truth = TrueScene.of(ts)[0]
-        final = {}
-        field = tr.field.eval()
-        with torch.no_grad():
-            for factor, nviews in setting["final_views"].items():
-                views = static_views(ts, ts.val_views)[:int(nviews)]
-                cache = work / f"truth-{Path(args.set).stem}-x{factor}-{nviews}.pkl"
-                tm = pickle.loads(cache.read_bytes()) if cache.exists() else None
-                _, _, m = evaluate_views(field, ts, views, 32 * int(factor), box=tr.box,
-                                         n_samples=tr.cfg.n_samples, log_eps=tr.cfg.log_eps,
-                                         near=tr.cfg.near, far=tr.cfg.far,
-                                         background=tr.cfg.background, dynamic=tr.dynamic,
-                                         truth=truth, truth_metrics=tm)
-                if tm is None and "truth" in m:
-                    cache.write_bytes(pickle.dumps(m["truth"]))
-                final[f"x{factor}"] = {
-                    "views": len(views), "windows": 32 * int(factor),
-                    "psnr": m["continuous"]["psnr"], "psnr_quantized": m["quantized"]["psnr"],
-                    "zero_floor": m["zero_floor"]["psnr"],
-                    "truth": m["truth"]["continuous"]["psnr"] if "truth" in m else None,
-                    "margin_closed": m.get("margin_closed", {}).get("continuous"),
-                    "margin_closed_quantized": m.get("margin_closed", {}).get("quantized")}
+        final = final_scores(tr.field, ts, tr.cfg, tr.box, tr.dynamic, setting["final_views"], work,
+                             Path(args.set).stem)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(json.dumps({"lever": args.lever, "config": cfg, "iterations": summary["iterations"],
                       "train_s": summary["wall_s"],
