@@ -40,6 +40,7 @@ from .errors import EvdnerfError, InputError
 from .events import event_image, event_rate, plot_event_rate, save_png, time_slice
 from .io.event_files import EventFile, read_event_file, write_event_file
 from .io.info import describe, format_info
+from .options import option
 from .session.convert import run_convert
 from .session.sync import run_sync
 from .sim.simulate import SimulationOptions, simulate_session
@@ -65,6 +66,19 @@ CONVERSIONS = [
 
 #: --source choices; ``auto`` takes the virtual rig where it can run, else the simulator.
 SOURCES = ("auto", "virtual-rig", "simulate")
+
+
+@dataclass(frozen=True)
+class DemoOptions:
+    """The knobs of `evdnerf demo` (flags, ``--config FILE`` keys and library defaults)."""
+
+    train_minutes: float = option(TRAIN_MINUTES, "training budget of the demo's field, in minutes", low=0,
+                                  low_open=True, high=10_080)
+    source: str = option("auto", "where the session comes from: the virtual rig (needs simavr and umockdev), "
+                         "the simulator, or auto: the virtual rig where it can run, else the simulator",
+                         choices=SOURCES)
+
+
 #: Entry-point group of session sources: name -> an object with ``available() -> (ok, why)``
 #: and ``__call__(session_dir, *, log) -> session.yaml document`` (rig.demo_capture).
 SOURCE_GROUP = "evdnerf.session_sources"
@@ -107,9 +121,10 @@ def choose_source(choice: str = "auto") -> SessionSource:
     return simulate(f"auto: the virtual rig cannot run here: {why}")
 
 
-def run_demo(out_dir: Path, *, overwrite: bool = False, train_minutes: float = TRAIN_MINUTES,
-             source: str = "auto", log=print) -> dict:
-    chosen = choose_source(source)             # before any output: a missing source writes nothing
+def run_demo(out_dir: Path, options: DemoOptions | None = None, *, overwrite: bool = False, log=print) -> dict:
+    options = options or DemoOptions()
+    train_minutes = options.train_minutes
+    chosen = choose_source(options.source)     # before any output: a missing source writes nothing
     with atomic_output(out_dir, overwrite=overwrite, directory=True) as tmp:
         tmp.mkdir()
         summary = _run(tmp, out_dir, log, train_minutes, chosen)

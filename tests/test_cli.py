@@ -229,3 +229,34 @@ def test_building_the_command_line_does_not_import_torch():
     code = "import sys; from evdnerf_ros.cli import build_parser; build_parser(); print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+@pytest.mark.parametrize("command, key, value, expected", [
+    (["eval", "RUN", "T.h5"], "max_views", 0, "must be >= 1"),
+    (["eval", "RUN", "T.h5"], "published", "sideways", "'sideways' is not one of orbit, static"),
+    (["eval", "RUN", "T.h5"], "windowz", 4, "windowz: unknown option"),
+    (["demo", "-o", "OUT"], "train_minutes", 0, "must be > 0 and <= 10080"),
+    (["demo", "-o", "OUT"], "source", "camera", "'camera' is not one of auto, virtual-rig, simulate"),
+])
+def test_eval_and_demo_config_files_are_checked_by_file_and_key(tmp_path, capsys, command, key, value, expected):
+    """eval and demo read --config FILE through their options dataclass: a bad value names the file and
+    key before anything runs (and nothing is written)."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"{key}: {json.dumps(value)}\n")
+    args = [str(tmp_path / a) if a in ("RUN", "T.h5", "OUT") else a for a in command]
+    assert main(args + ["--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert f"{cfg}: {key}" in err and expected in err, err
+    assert not (tmp_path / "OUT").exists()
+
+
+def test_eval_config_values_reach_the_job(tmp_path, monkeypatch):
+    """Config values land in run_eval; a flag typed wins over the file."""
+    import evdnerf_ros.eval.evaluate as evaluate
+
+    seen = {}
+    monkeypatch.setattr(evaluate, "run_eval", lambda run, ts, **kw: seen.update(kw) or {})
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("max-views: 2\nwindows: 16\ndevice: cpu\n")
+    assert main(["eval", "RUN", "T.h5", "--config", str(cfg), "--windows", "8"]) == 0
+    assert (seen["max_views"], seen["n_windows"], seen["device"]) == (2, 8, "cpu")

@@ -5,14 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..options import add_options, options_from_args
-from .common import number
 
 
 def _cmd_demo(args) -> int:
-    from ..demo import run_demo
+    from ..demo import DemoOptions, run_demo
 
-    run_demo(Path(args.output), overwrite=args.overwrite, train_minutes=args.train_minutes,
-             source=args.source)
+    run_demo(Path(args.output), options_from_args(DemoOptions, args), overwrite=args.overwrite)
     return 0
 
 
@@ -35,16 +33,9 @@ def register(sub) -> None:
                                    "events-PSNR against wall time.")
     p.add_argument("-o", "--output", default="demo_output", help="output folder (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
-    from ..demo import TRAIN_MINUTES
+    from ..demo import DemoOptions
 
-    p.add_argument("--train-minutes", type=number(float, low=0, low_open=True, high=10_080), default=TRAIN_MINUTES,
-                   help="training budget of the demo's field, in (0, 10080] (default: %(default)s)")
-    from ..demo import SOURCES
-
-    p.add_argument("--source", choices=SOURCES, default="auto",
-                   help="where the session comes from: the virtual rig (needs simavr and umockdev), the "
-                        "simulator, or auto: the virtual rig where it can run, else the simulator "
-                        "(default: %(default)s)")
+    add_options(p, DemoOptions)
     p.set_defaults(func=_cmd_demo)
 
     from ..sim.simulate import SimulationOptions

@@ -5,7 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from argparse import SUPPRESS
+
 from ..errors import EvdnerfError
+from ..options import add_options, option_fields, options_from_args
 from .common import number
 
 
@@ -27,21 +30,23 @@ def _cmd_train(args) -> int:
 
 def _cmd_eval(args) -> int:
     from ..eval.evaluate import run_eval
+    from ..eval.options import EvalOptions
 
-    if args.published:
+    options = options_from_args(EvalOptions, args)
+    if options.published:
         from ..eval.published import published_vs_true
 
-        result = published_vs_true(args.run, args.train_set, n_windows=args.windows or 32,
-                                    static=args.published == "static", publisher={"device": args.device},
+        result = published_vs_true(args.run, args.train_set, n_windows=options.windows or options.published_windows,
+                                    static=options.published == "static", publisher={"device": options.device},
                                     log=(lambda *_: None) if args.json else print)
         result.pop("reference")
         if args.json:
             print(json.dumps(result, indent=2))
         return 0
 
-    result = run_eval(args.run, args.train_set, n_windows=args.windows, max_views=args.max_views,
+    result = run_eval(args.run, args.train_set, n_windows=options.windows, max_views=options.max_views,
                       image_path=Path(args.run) / "eval_events.png",
-                      log=(lambda *_: None) if args.json else print, device=args.device)
+                      log=(lambda *_: None) if args.json else print, device=options.device)
     if args.json:
         print(json.dumps(result, indent=2))
     return 0
@@ -85,14 +90,13 @@ def register(sub) -> None:
                                    "finer; on validation and training views.")
     p.add_argument("run", help="run folder")
     p.add_argument("train_set", help="TRAIN.h5")
-    p.add_argument("--windows", type=number(int, low=1, high=100_000),
-                   help="window count, 1..100000 (default: the trained one)")
-    p.add_argument("--max-views", type=number(int, low=1), help="evaluate at most this many views per split")
-    p.add_argument("--device", default="auto", type=str.lower, choices=["auto", "cpu", "cuda"],
-                   help="where the field is evaluated: auto (cuda when available), cpu or cuda (default %(default)s)")
-    p.add_argument("--published", nargs="?", const="orbit", choices=["orbit", "static"],
-                   help="instead: publish from the run along its orbit (or a static novel view) and score the "
-                        "events against the simulator's along the same path (simulated training sets only)")
+    from ..eval.options import EvalOptions
+
+    add_options(p, EvalOptions)
+    # an optional value (the flag alone: orbit) is beyond the generic flags
+    published = next(spec for f, spec in option_fields(EvalOptions) if f.name == "published")
+    p.add_argument("--published", nargs="?", const="orbit", choices=published.choices, default=SUPPRESS,
+                   help=published.help)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=_cmd_eval)
 

@@ -1,0 +1,24 @@
+"""The knobs of `evdnerf eval` (flags, ``--config FILE`` keys and library defaults from one place)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..device import DEVICE_CHOICES
+from ..options import option
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    windows: int | None = option(None, "window count", kind=int, low=1, high=100_000,
+                                 none_help="the trained one")
+    max_views: int | None = option(None, "evaluate at most this many views per split", kind=int, low=1,
+                                   high=100_000, none_help="every view")
+    device: str = option("auto", "where the field is evaluated: auto (cuda when available), cpu or cuda",
+                         choices=DEVICE_CHOICES)
+    published: str | None = option(None, "instead: publish from the run along its orbit (or a static novel "
+                                   "view) and score the events against the simulator's along the same path "
+                                   "(simulated training sets only); the flag alone means orbit", kind=str,
+                                   choices=("orbit", "static"), cli=False)
+    published_windows: int = option(32, "windows of the published-vs-true comparison", low=1, high=100_000,
+                                    cli=False)
