@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import arg_parser, describe, interleaved, load_average, machine, pyplot, save_figure, write_results
+from _common import arg_parser, describe, interleaved, load_average, machine, pyplot, read_results, save_figure, write_results
 
 from evdnerf_ros.events.types import EVENT_DTYPE  # noqa: E402
 from rig.camera.caer_words import CaerWordDecoder, canonical_order, encode_caer_words  # noqa: E402
@@ -392,6 +392,8 @@ def main() -> None:
     ap = arg_parser(__doc__)
     ap.add_argument("--events", type=int, default=None, help="decode benchmark events (default 4M, quick 500k)")
     ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--only", choices=["dvx-decode"], help="rerun only this part; the other parts of the "
+                    "existing results file are kept")
     args = ap.parse_args()
     n = args.events or (500_000 if args.quick else 4_000_000)
     reps = args.repeats or (3 if args.quick else 7)
@@ -400,9 +402,15 @@ def main() -> None:
     info = machine("numba", "neuromorphic-drivers", "libusb1", "expelliarmus")
     info["loadavg_start"] = load_average()
     result = {"machine": info, "dvxplorer": {}, "evk4": {}}
+    if args.only:
+        result = {**read_results(args.out, "camera"), "machine_" + args.only: info}
     dv, e4 = result["dvxplorer"], result["evk4"]
     dv["decode"] = dvx_decode(n, reps)
     print("DVXplorer decode Mev/s:", {k: round(v, 1) for k, v in dv["decode"]["mev_s"].items()}, flush=True)
+    if args.only:
+        info["loadavg_end"] = load_average()
+        write_results(args.out, "camera", result, plot)
+        return
     dv["twin"] = twin_rates("dvx", 200_000 if args.quick else 2_000_000)
     e4["twin"] = twin_rates("evk4", 200_000 if args.quick else 2_000_000)
     for label, sec in (("DVXplorer", dv), ("EVK4", e4)):
