@@ -65,10 +65,16 @@ def main(argv=None):
     ap.add_argument("--span", type=float, default=0.1, help="published span in seconds (default 0.1)")
     ap.add_argument("--work", default="/tmp/bench_gpu")
     ap.add_argument("--set", default=None, help="an existing Jet-Down TRAIN.h5 (default: build it in --work)")
+    ap.add_argument("--configs", default=None, help="JSON {name: config changes} instead of the default pair")
+    ap.add_argument("--parts", default="steps,train,eval,publish", help="which parts to run (comma-separated)")
+    ap.add_argument("--factors", default="1,4,8", help="window factors of the final scores")
+    ap.add_argument("--stem", default="gpu", help="results file name")
     ap.add_argument("--replot", action="store_true", help="redraw the PNG from the JSON")
     args = ap.parse_args(argv)
     if args.replot:
-        return plot(read_results(args.out, "gpu"), args.out / "gpu.png")
+        return plot(read_results(args.out, args.stem), args.out / f"{args.stem}.png")
+    configs = json.loads(args.configs) if args.configs else CONFIGS
+    parts = set(args.parts.split(","))
     import torch
 
     import bench_quality
@@ -87,30 +93,32 @@ def main(argv=None):
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     setting = dict(bench_quality.PROXY if args.quick else bench_quality.FULL)
+    factors = {int(f) for f in args.factors.split(",")}
+    final_views = {f: v for f, v in setting["final_views"].items() if int(f) in factors}
     train_h5 = Path(args.set) if args.set else bench_quality.build_set(work, setting)
     result = {"machine": machine("torch"), "device": str(dev),
               "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
               "torch_cuda": torch.version.cuda, "set": str(train_h5.name), "seconds": seconds,
-              "configs": CONFIGS, "steps": {}, "runs": {}, "publisher": []}
+              "configs": configs, "steps": {}, "runs": {}, "publisher": []}
     log = lambda m: print(m, flush=True)  # noqa: E731
 
     with TrainingSet(train_h5) as ts:
-        for name, cfg in CONFIGS.items():
+        for name, cfg in configs.items() if "steps" in parts else ():
             for d in dict.fromkeys([str(dev), "cpu"]):
                 r = step_times(ts, d, cfg, steps)
                 result["steps"].setdefault(name, {})[d] = r
                 log(f"step time {name} on {d}: {r['median_ms']:.1f} ms (median of {steps})")
-    partial = args.out / "gpu.partial.json"          # what a run cut short still leaves
+    partial = args.out / f"{args.stem}.partial.json"          # what a run cut short still leaves
     write_json(partial, result)
 
-    for name, cfg in CONFIGS.items():
+    for name, cfg in configs.items() if "train" in parts else ():
         run = work / f"run-{name}"
         summary = run_train(train_h5, run, config={**BASE, **cfg}, minutes=seconds / 60.0, overwrite=True,
                             eval_fn=validation_eval(n_windows=32, max_views=4), log=lambda *_: None, device=str(dev))
         trained = TrainedRun.load(run)
         with TrainingSet(train_h5) as ts:
             final = bench_quality.final_scores(trained.field.to(dev), ts, trained.config, trained.box,
-                                               trained.dynamic, setting["final_views"], work, train_h5.stem)
+                                               trained.dynamic, final_views, work, train_h5.stem)
         curve = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
         result["runs"][name] = {
             "iterations": summary["iterations"], "train_s": summary["wall_s"],
@@ -124,6 +132,9 @@ def main(argv=None):
         write_json(partial, result)
     # `evdnerf eval` as a user runs it (validation, training and moving splits at the trained
     # windows; the true scene is scored on the CPU either way)
+    if "eval" not in parts:
+        write_results(args.out, args.stem, result, plot)
+        return partial.unlink()
     t = time.perf_counter()
     run_eval(work / "run-default", train_h5, max_views=4, factors=(1,), log=lambda *_: None, device=str(dev))
     result["eval_s_x1"] = time.perf_counter() - t
@@ -142,7 +153,7 @@ def main(argv=None):
         log(f"publish {path} {size}x{size} on {dev}: RTF {row['rtf']:.3g}, events PSNR {row['psnr']:.2f} dB "
             f"(floor {row['zero_floor']:.2f}, true render {row['true_render']:.2f})")
         write_json(partial, result)
-    write_results(args.out, "gpu", result, plot)
+    write_results(args.out, args.stem, result, plot)
     partial.unlink()
 
 
