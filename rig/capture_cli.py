@@ -18,7 +18,9 @@ On DDS (``--live``) the node's options are read-only parameters (a run-time set 
 reason) and, once the camera is open, each camera bias is a dynamic integer parameter
 ``biases.<name>`` (``ros2 param set /capture biases.bias_diff_on 20``), as metavision_driver and
 libcaer_driver allow: checked by the driver's own range checks, applied to the camera while it
-records, and logged (also on /rosout) with the time it took effect.
+records, and logged (also on /rosout) with the time it took effect; session.yaml records, per view,
+the biases in force, each change with its sensor time, and the thresholds the driver's bias model
+gives for them.
 """
 
 from __future__ import annotations
@@ -156,6 +158,7 @@ class BiasChange:
     wall_ns: int            # time.time_ns() when the write returned: the bags' stamps are on this clock
     sensor_ns: int | None   # the camera's sensor time then (its clock fit); None when not streaming
     source: str             # "parameter service" or "bias file"
+    host_ns: int | None = None  # time.monotonic_ns() then: the capture places it among its views by it
 
 
 class LiveBiases:
@@ -249,7 +252,8 @@ class LiveBiases:
             wall_ns, host_ns = time.time_ns(), time.monotonic_ns()
             back = {name: int(v) for name, v in self.device.biases.items()}
             self.held = back
-            change = BiasChange({n: back[n] for n in values if n in back}, wall_ns, self._sensor_ns(host_ns), source)
+            change = BiasChange({n: back[n] for n in values if n in back}, wall_ns, self._sensor_ns(host_ns), source,
+                                host_ns)
             self.changes.append(change)
             self._hold({n: back[n] for n in values if n in back})
         self._log(change, values)
@@ -306,6 +310,11 @@ class SerializedCamera:
     @property
     def biases(self) -> dict[str, int]:
         return self._live.read()
+
+    @property
+    def bias_changes(self) -> list[BiasChange]:
+        """Every change applied so far, in order (the session records them per view)."""
+        return self._live.changes
 
     def set_biases(self, biases: dict) -> None:
         live = self._live

@@ -117,6 +117,21 @@ def _capture(vr, out, tmp, **opts):
     return spawn_virtual_capture(vr, rig, o, tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
+def _rest(proc, timeout_s: float) -> str:
+    """The rest of a capture's output after a loop over ``proc.stdout`` broke off: read through
+    the same file object (communicate() would miss what its read-ahead already holds)."""
+    import threading
+
+    timer = threading.Timer(timeout_s, proc.kill)
+    timer.start()
+    try:
+        text = proc.stdout.read()
+        proc.wait()
+    finally:
+        timer.cancel()
+    return text
+
+
 def _views(out):
     return {v["name"]: v for v in yaml.safe_load((Path(out) / "session.yaml").read_text())["views"]}
 
@@ -145,6 +160,10 @@ def test_closed_loop_capture_sync_convert_train(virtual_rig, tmp_path):
 
     from evdnerf_ros.io.rosbag2 import read_events
 
+    # the camera streamed once for the whole session: every bag is cut from the one stream, on
+    # its one clock, with exactly the twin's events of its span and none of another view's
+    emitted = vr.twin.emitted_events()
+    spans = []
     for k, (name, v) in enumerate(views.items()):
         stream = read_events(out / name)
         rising = stream.triggers[stream.triggers["value"] == 1]
@@ -152,6 +171,25 @@ def test_closed_loop_capture_sync_convert_train(virtual_rig, tmp_path):
         sensor_us = (int(rising["t"][0]) - stream.time_offset_ns) // 1000
         assert sensor_us * 1000 == placed[k].sensor_ns
         assert stream.events.size > 100 and v["events"] == stream.events.size
+        got = stream.events.copy()
+        got["t"] -= stream.time_offset_ns
+        sensor = got["t"]
+        inside = emitted[(emitted["t"] >= sensor[0]) & (emitted["t"] <= sensor[-1])]
+        order = ["t", "x", "y", "p"]
+        assert np.array_equal(np.sort(got, order=order), np.sort(inside, order=order)), name
+        spans.append((int(sensor[0]), int(sensor[-1])))
+        # the span: from the pre-roll before the trigger edge to DONE + settle
+        assert sensor[0] >= placed[k].sensor_ns - 1_000_000_000 and sensor[-1] <= placed[k].sensor_ns + 2_000_000_000
+        # thresholds from the driver's bias model for the view's biases: the twin's own
+        assert v["thresholds_source"] == "bias model" and v["bias_changes"] == []
+        assert (v["thresholds"]["c_pos"], v["thresholds"]["c_neg"]) == pytest.approx(vr.twin.thresholds(), rel=1e-9)
+        # the turntable's turn to this view was streamed, read and discarded (counted)
+        assert len(v["discarded_before"]) == 1 and (k == 0 or v["discarded_before"][0]["events"] > 0), v
+    assert all(a[1] < b[0] for a, b in zip(spans, spans[1:])), spans
+    session = yaml.safe_load((out / "session.yaml").read_text())
+    assert session["thresholds"]["per_view"] == "the same in every view"
+    assert session["stream"]["discarded"]["events"] == session["stream"]["discarded_after_last_view"]["events"] + \
+        sum(v["discarded_before"][0]["events"] for v in views.values()) > 0
 
     # the independent reader reads every bag
     from mcap.reader import make_reader
@@ -194,7 +232,7 @@ def test_sigint_in_a_view_then_resume(virtual_rig, tmp_path):
             time.sleep(0.4)                       # inside view_01's recording
             proc.send_signal(signal.SIGINT)
             break
-    rest, _ = proc.communicate(timeout=120)
+    rest = _rest(proc, 120)
     assert proc.returncode == 130, "".join(lines) + rest
     assert "Traceback" not in rest
     views = _views(out)
@@ -216,14 +254,16 @@ def test_sigint_in_a_view_then_resume(virtual_rig, tmp_path):
 def test_camera_unplug_mid_view_keeps_finished_views(virtual_rig, tmp_path):
     vr, out = virtual_rig, tmp_path / "S"
     proc = _capture(vr, out, tmp_path, views=3)
+    lines = []
     for line in proc.stdout:
+        lines.append(line)
         if "view_01: turntable" in line:
             time.sleep(0.3)
             vr.twin.unplug()
             break
-    rest, _ = proc.communicate(timeout=120)
+    rest = "".join(lines) + _rest(proc, 120)
     assert proc.returncode == 2, rest
-    assert "evdnerf: error:" in rest and "Traceback" not in rest
+    assert "evdnerf: error:" in rest and "Traceback" not in rest, rest
     views = _views(out)
     assert "view_01" in views, rest
     assert views["view_00"]["complete"] is True and views["view_01"]["complete"] is False
@@ -238,7 +278,7 @@ def test_servo_silence_mid_view_is_a_clear_timeout(virtual_rig, tmp_path):
             os.kill(vr.arduino.proc.pid, signal.SIGSTOP)     # the board stops answering
             break
     try:
-        rest, _ = proc.communicate(timeout=120)
+        rest = _rest(proc, 120)
     finally:
         os.kill(vr.arduino.proc.pid, signal.SIGCONT)
     assert proc.returncode == 2, rest

@@ -155,7 +155,30 @@ def test_biases_change_live_and_the_options_stay_read_only(virtual_rig, tmp_path
     session = yaml.safe_load((out / "session.yaml").read_text())
     assert len(session["views"]) == 3 and all(v["complete"] for v in session["views"]), text
     assert session["camera"]["biases"]["bias_fo"] == 7           # read once, after the bias file
+    # per view: the biases in force, every live change once (with its sensor time, values and
+    # the thresholds after it), and the thresholds the driver's model gives (the twin's own model:
+    # tests/test_capture_stream.py; the camera is back at its factory biases once closed)
+    from rig.camera.evk4 import thresholds_from_biases
 
+    views = session["views"]
+    moves = [m for v in views for m in v["bias_changes"]]
+    assert [m["values"] for m in moves] == [{"bias_diff_on": v} for v in range(20, value + 1)], moves
+    assert all(m["source"] == "parameter service" and m["when"] in ("before", "recording") for m in moves)
+    assert isinstance(moves[-1]["sensor_ns"], int) and moves[-1]["sensor_ns"] > 0, moves
+    off = session["camera"]["biases"]["bias_diff_off"]
+    assert moves[-1]["thresholds"] == pytest.approx(dict(zip(("c_pos", "c_neg"), thresholds_from_biases(value, off))))
+    assert views[0]["biases"]["bias_fo"] == 7 and views[-1]["biases"]["bias_diff_on"] == value
+    last = views[-1]["thresholds"]
+    assert views[-1]["thresholds_source"] == "bias model"
+    assert (last["c_pos"], last["c_neg"]) == pytest.approx(thresholds_from_biases(value, off)) != (0.2, 0.2)
+    # a change counts from its time on: a view has the biases of the changes before it
+    running = dict(session["camera"]["biases"])
+    for v in views:
+        running.update({n: x for m in v["bias_changes"] if m["when"] == "before" for n, x in m["values"].items()})
+        assert v["biases"] == running, (v["biases"], running)
+        assert (v["thresholds"]["c_pos"], v["thresholds"]["c_neg"]) == pytest.approx(
+            thresholds_from_biases(running["bias_diff_on"], running["bias_diff_off"]))
+        running.update({n: x for m in v["bias_changes"] for n, x in m["values"].items()})
 
 def test_capture_options_are_read_only_parameters():
     """Without DDS too: every option is declared (lists without a numeric range) and a run-time

@@ -13,6 +13,12 @@ that `t_common = t_view - offset_ns`), `method`, `confidence` and per-method est
 A moving view also has `moving_arc_deg` (the azimuth its camera sweeps; None for a static
 view) and its pose topic carries the trajectory.
 
+A captured view may record its own contrast thresholds: `thresholds` (`c_pos`, `c_neg`, as the
+session's) with `thresholds_source` (`bias model`: the camera driver's bias -> threshold model
+for the view's biases; `options`: given), the camera's `biases` in force when it began
+({name: integer}) and `bias_changes` (each: `sensor_ns` or null, `values` {name: integer},
+optional `thresholds` after it). The session's `thresholds` stay the one pair training uses.
+
 The one writer of this layout is :mod:`evdnerf_ros.session.recorder` (per-view bags and
 session.yaml); it checks every session.yaml it writes with :func:`check_session`, the same
 schema :func:`load_session` applies, so a document the reader would refuse is never written.
@@ -29,13 +35,18 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.poses import check_rigid
-from ..yamlcheck import Where, is_number, load_yaml, mapping, matrix, number_in, text_in, type_name
+from ..yamlcheck import Where, choice, is_number, load_yaml, mapping, matrix, number, number_in, sequence, text_in, \
+    type_name
 from ..io.trainingset import C_MAX, T_LIMIT
 from ..topics import EVENTS, SERVO_TRIGGER
 
 SESSION_FORMAT = "evdnerf-rig-session"
 SESSION_FORMAT_VERSION = 1
 SPLITS = ("train", "val")
+#: a view's `thresholds_source`
+THRESHOLD_SOURCES = ("bias model", "options")
+#: bias values are the drivers' register fields or offsets (EVK4); any int32 passes the layout
+BIAS_LIMIT = 2**31
 
 
 @dataclass
@@ -48,6 +59,7 @@ class ViewRecord:
     frames: Path | None = None
     ground_truth: dict | None = None
     sync: dict | None = None
+    thresholds: tuple[float, float] | None = None   # the view's own (c_pos, c_neg), when recorded
 
 
 @dataclass
@@ -154,8 +166,7 @@ def _check_session(root: Path, path: Path, data) -> Session:
             _topic(topics, k, tw)
     w = top / "thresholds"
     th = mapping(data.get("thresholds"), w)
-    c_pos = float(number_in(th, "c_pos", w, low=0, low_open=True, high=C_MAX))
-    c_neg = float(number_in(th, "c_neg", w, low=0, low_open=True, high=C_MAX))
+    c_pos, c_neg = _threshold_pair(th, w)
     eps = number_in(th, "eps", w, required=False, low=0, low_open=True, high=1.0)
     time_sec = mapping(data.get("time"), top / "time", optional=True) or {}
     for k in ("scene_start_ns", "scene_end_ns", "motion_start_ns", "motion_end_ns"):
@@ -180,6 +191,39 @@ def _check_session(root: Path, path: Path, data) -> Session:
         views.append(_check_view(root, v, top / "views" / i, seen))
     return Session(root=root, width=width, height=height, K=K, D=D, c_pos=c_pos, c_neg=c_neg,
                    eps=None if eps is None else float(eps), views=views, servo=servo, time=time_sec, data=data)
+
+
+def _threshold_pair(th: dict, where: Where) -> tuple[float, float]:
+    return (float(number_in(th, "c_pos", where, low=0, low_open=True, high=C_MAX)),
+            float(number_in(th, "c_neg", where, low=0, low_open=True, high=C_MAX)))
+
+
+def _bias_values(value, where: Where) -> dict:
+    values = mapping(value, where)
+    for name, v in values.items():
+        if isinstance(v, bool):
+            (where / str(name)).fail(f"expected an integer bias value, got {v!r}")
+        number(v, where / str(name), integer=True, low=-BIAS_LIMIT, high=BIAS_LIMIT)
+    return values
+
+
+def _view_biases(v: dict, where: Where) -> tuple[float, float] | None:
+    """A captured view's thresholds, biases and bias changes (module doc); its (c_pos, c_neg)."""
+    th = mapping(v.get("thresholds"), where / "thresholds", optional=True)
+    pair = None if th is None else _threshold_pair(th, where / "thresholds")
+    if v.get("thresholds_source") is not None:
+        choice(v["thresholds_source"], where / "thresholds_source", THRESHOLD_SOURCES)
+    if v.get("biases") is not None:
+        _bias_values(v["biases"], where / "biases")
+    if v.get("bias_changes") is not None:
+        for i, c in enumerate(sequence(v["bias_changes"], where / "bias_changes")):
+            cw = where / "bias_changes" / i
+            mapping(c, cw, required=("values",))
+            _int_ns(c, "sensor_ns", cw)
+            _bias_values(c["values"], cw / "values")
+            if c.get("thresholds") is not None:
+                _threshold_pair(mapping(c["thresholds"], cw / "thresholds"), cw / "thresholds")
+    return pair
 
 
 def _topic(sec: dict, key: str, where: Where) -> None:
@@ -215,6 +259,8 @@ def _check_view(root: Path, v, where: Where, seen: set) -> ViewRecord:
     sync = mapping(v.get("sync"), where / "sync", optional=True)
     if sync is not None:
         _int_ns(sync, "offset_ns", where / "sync")
+    thresholds = _view_biases(v, where)
     return ViewRecord(name=name, bag=root / bag, split=split,
                       azimuth_deg=None if azimuth is None else float(azimuth), T_world_cam=T,
-                      frames=None if frames is None else root / frames, ground_truth=gt, sync=sync)
+                      frames=None if frames is None else root / frames, ground_truth=gt, sync=sync,
+                      thresholds=thresholds)

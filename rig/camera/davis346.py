@@ -43,7 +43,8 @@ from .device import Device, EventChunk, UsbLink
 from .dvxplorer import libcaer_packet
 from .errors import CameraError, CameraProtocolError
 
-__all__ = ["DAVIS346", "BIASES", "DEFAULT_BIASES", "bias_current_pa", "coarse_fine_word"]
+__all__ = ["DAVIS346", "BIASES", "DEFAULT_BIASES", "bias_current_pa", "coarse_fine_word", "thresholds_from_bias_words",
+           "thresholds_from_biases"]
 
 VID, PID = 0x152A, 0x841A
 REQUEST_CONFIG = 0xBF
@@ -438,6 +439,12 @@ class DAVIS346(Device):
         return [] if self._decoder is None else self._decoder.take_frames()
 
     # ------------------------------------------------------------------ biases
+    THRESHOLD_MODEL = "rig.camera.davis346.thresholds_from_biases"
+
+    def contrast_thresholds(self, biases: dict) -> tuple[float, float]:
+        """The model's (C_on, C_off) for ``biases`` (the DiffBn / OnBn / OffBn coarse and fine values)."""
+        return thresholds_from_biases(biases)
+
     @property
     def biases(self) -> dict[str, int]:
         """The bias parameters (flat names, see BIASES), read back from the bias generator."""
@@ -572,3 +579,11 @@ def thresholds_from_bias_words(diff_word: int, on_word: int, off_word: int, base
     c_on = base * math.log(i_on / i_d) / math.log(i_on0 / i_d0)
     c_off = base * math.log(i_d / i_off) / math.log(i_d0 / i_off0)
     return max(floor, c_on), max(floor, c_off)
+
+
+def thresholds_from_biases(biases: dict) -> tuple[float, float]:
+    """:func:`thresholds_from_bias_words` for the driver's flat biases (``diffbn_coarse``,
+    ``diffbn_fine``, ``onbn_*``, ``offbn_*``): the current depends only on coarse and fine."""
+    words = [coarse_fine_word(DEFAULT_BIASES[n][0], int(biases[f"{n}_coarse"]), int(biases[f"{n}_fine"]))
+             for n in ("diffbn", "onbn", "offbn")]
+    return thresholds_from_bias_words(*words)

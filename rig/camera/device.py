@@ -72,6 +72,10 @@ class EventChunk:
     wall_ns: int
     seq: int
     raw: bytes            # the bytes the events came from (for raw pass-through recording)
+    #: the stream decoder's state before this chunk (model specific; () for encodings whose
+    #: transfers stand alone): ``Device.resume_words(chunk)`` turns it into the words that let a
+    #: reader start decoding at this chunk, as a recording cut from a running stream must
+    decoder_state: tuple = ()
 
 
 @dataclass
@@ -321,7 +325,11 @@ class Device(abc.ABC):
     * ``_reset_decoder()`` and ``_decode(data) -> (events, triggers)`` (streaming decoder
       carrying state across chunks, times in int64 sensor ns unwrapped from the sensor's
       zero); optional ``_sensor_time_ns()`` -> the newest sensor time the decoder has seen
-      (time words included), used for the clock samples;
+      (time words included), used for the clock samples; optional ``_decoder_state()`` and
+      ``resume_words(chunk)`` where a recording cut from a running stream needs its decoder's
+      state first (EVT 3.0);
+    * optional ``THRESHOLD_MODEL`` / ``contrast_thresholds(biases)``: the model's bias ->
+      contrast-threshold function, shared with the model's twin;
     * ``biases`` / ``set_biases`` / ``roi`` / ``set_roi`` / ``clear_roi`` /
       ``enable_trigger_input``.
     """
@@ -467,6 +475,7 @@ class Device(abc.ABC):
         return self.decode_chunk(raw)
 
     def decode_chunk(self, raw: RawChunk) -> EventChunk:
+        state = self._decoder_state()
         events, triggers = self._decode(raw.data)
         if events.dtype != EVENT_DTYPE or triggers.dtype != TRIGGER_DTYPE:
             raise CameraProtocolError(f"{self.name}: the decoder returned {events.dtype} / "
@@ -479,7 +488,13 @@ class Device(abc.ABC):
             t = max(cands) if cands else None
         if t is not None:
             self.add_clock_sample(t, raw.host_ns)
-        return EventChunk(events, triggers, raw.host_ns, raw.wall_ns, raw.seq, raw.data)
+        return EventChunk(events, triggers, raw.host_ns, raw.wall_ns, raw.seq, raw.data, state)
+
+    def resume_words(self, chunk: EventChunk) -> bytes:
+        """Bytes in this camera's encoding, holding no event, that put a decoder starting at
+        ``chunk`` into the state the stream's own decoder had before it: what a recording
+        cut from a running stream begins with. b"" where every transfer stands alone."""
+        return b""
 
     # clock -------------------------------------------------------------------------------
     def add_clock_sample(self, sensor_ns: int, host_ns: int) -> None:
@@ -558,6 +573,19 @@ class Device(abc.ABC):
     def _decode(self, data: bytes) -> tuple[np.ndarray, np.ndarray]: ...
 
     def _sensor_time_ns(self) -> int | None:
+        return None
+
+    def _decoder_state(self) -> tuple:
+        """The stream decoder's state that :meth:`resume_words` needs (() where none)."""
+        return ()
+
+    #: where :meth:`contrast_thresholds` comes from ("module.function"); None: no model
+    THRESHOLD_MODEL: str | None = None
+
+    def contrast_thresholds(self, biases: dict) -> tuple[float, float] | None:
+        """(C_on, C_off) contrast thresholds (log intensity) this model's pixels have with
+        ``biases`` (as :attr:`biases` reads them); None for a driver without a bias ->
+        threshold model. Needs no device: a session computes it for any biases it recorded."""
         return None
 
     @property

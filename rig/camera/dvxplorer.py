@@ -37,7 +37,18 @@ from .caer_words import CaerWordDecoder
 from .device import Device, EventChunk, UsbLink
 from .errors import CameraError, CameraProtocolError
 
-__all__ = ["DVXplorer", "BIASES", "BIAS_PRESETS", "libcaer_packet"]
+__all__ = ["DVXplorer", "BIASES", "BIAS_PRESETS", "libcaer_packet", "thresholds_from_biases", "BASE_THRESHOLD"]
+
+#: contrast threshold (log intensity) at the middle bias current 4; the ON threshold doubles
+#: every 4 steps of current_on up, the OFF threshold every 4 steps of current_off down (so
+#: libcaer's default on=0 / off=8 gives 0.2 / 0.2, its presets symmetric pairs)
+BASE_THRESHOLD = 0.4
+
+
+def thresholds_from_biases(current_on: int, current_off: int, base: float = BASE_THRESHOLD):
+    """(C_on, C_off) for the sensor's BIAS_CURRENT_ON / BIAS_CURRENT_OFF values: the bias ->
+    threshold model of the driver and of its twin (rig.camera.virtual.dvxplorer)."""
+    return (base * 2.0 ** ((int(current_on) - 4) / 4.0), base * 2.0 ** ((4 - int(current_off)) / 4.0))
 
 VID, PID = 0x152A, 0x8419
 REQUEST_CONFIG = 0xBF
@@ -343,6 +354,12 @@ class DVXplorer(Device):
         return self._decoder
 
     # ------------------------------------------------------------------ biases
+    THRESHOLD_MODEL = "rig.camera.dvxplorer.thresholds_from_biases"
+
+    def contrast_thresholds(self, biases: dict) -> tuple[float, float]:
+        """The model's (C_on, C_off) for ``biases`` (current_on, current_off)."""
+        return thresholds_from_biases(int(biases["current_on"]), int(biases["current_off"]))
+
     @property
     def biases(self) -> dict[str, int]:
         """The sensor's bias parameters (libcaer names, module doc), read from its registers."""

@@ -15,7 +15,12 @@ Protocol (facts in rig.camera.evk4_registers, with their public sources):
   (RO_CTRL 0x9028) opens; stop() closes the gate and stops the time base;
 * events: EVT 3.0 bytes, passed through untouched by ``read_raw()`` (the capture node
   records them as EventPacket ``evt3``), decoded by ``read()`` with the project's streaming
-  EVT 3.0 decoder into int64 ns from the sensor's zero (24-bit microsecond wraps unwrapped).
+  EVT 3.0 decoder into int64 ns from the sensor's zero (24-bit microsecond wraps unwrapped);
+  ``resume_words()`` gives the EVT 3.0 state words a recording cut from the running stream
+  begins with (TIME_HIGH from 0 up to the current time, so the wraps before it count, then
+  TIME_LOW, ADDR_Y, VECT_BASE_X);
+* contrast thresholds: :func:`thresholds_from_biases` is the bias -> threshold model of the
+  driver and of its twin (rig.camera.virtual.evk4), ``contrast_thresholds(biases)``.
 
 ``settle=False`` skips the bring-up's settling delays (1 s sensor reset, 1.5 s MIPI
 start-up): only for emulated cameras, which need none.
@@ -23,12 +28,14 @@ start-up): only for emulated cameras, which need none.
 
 from __future__ import annotations
 
+import math
 import struct
 import threading
 import time
 
 import numpy as np
 
+from evdnerf_ros.events.codecs import evt3 as _evt3
 from evdnerf_ros.events.codecs import make_decoder
 
 from . import evk4_registers as R
@@ -36,7 +43,41 @@ from .biases import BiasRange, check_biases, read_bias_file, write_bias_file
 from .device import Device, UsbLink
 from .errors import CameraDisconnected, CameraError, CameraProtocolError
 
-__all__ = ["EVK4"]
+__all__ = ["EVK4", "thresholds_from_biases", "BASE_THRESHOLD", "THRESHOLD_E_FOLD"]
+
+#: contrast threshold at the factory bias; each +THRESHOLD_E_FOLD DAC steps of bias_diff_on
+#: (bias_diff_off) multiply the ON (OFF) threshold by e
+BASE_THRESHOLD = 0.2
+THRESHOLD_E_FOLD = 100.0
+#: EVT 3.0 word types the resume words use, and the TIME_HIGH step between fillers (a quarter
+#: of the 12-bit range: a decoder counts a wrap where TIME_HIGH drops by more than half of it)
+_TIME_HIGH, _TIME_LOW, _ADDR_Y, _VECT_BASE_X = 0x8000, 0x6000, 0x0000, 0x3000
+_HIGH_FILL = 1024
+
+
+def thresholds_from_biases(diff_on_offset: int, diff_off_offset: int,
+                           base: float = BASE_THRESHOLD) -> tuple[float, float]:
+    """(C_on, C_off) contrast thresholds (log intensity) for bias offsets from the factory
+    values: a larger bias_diff_on / bias_diff_off makes the pixel less sensitive."""
+    return (base * math.exp(diff_on_offset / THRESHOLD_E_FOLD),
+            base * math.exp(diff_off_offset / THRESHOLD_E_FOLD))
+
+
+def evt3_resume_words(time_us: int, y: int, base_x: int, vector_polarity: int) -> bytes:
+    """EVT 3.0 words (no event) that bring a decoder starting on them to time ``time_us``
+    (unwrapped: TIME_HIGH words from 0 upwards, one each 2**22 us, so it counts every 24-bit
+    wrap before), row ``y`` and vector base ``base_x``; a negative value is a state the stream
+    had not set yet, and is left unset."""
+    if time_us < 0:
+        return b""
+    high = int(time_us) >> 12
+    highs = np.append(np.arange(0, high, _HIGH_FILL, dtype=np.int64), high)
+    words = [_TIME_HIGH | (highs & 0xFFF), [_TIME_LOW | (int(time_us) & 0xFFF)]]
+    if y >= 0:
+        words.append([_ADDR_Y | (int(y) & 0x7FF)])
+    if base_x >= 0:
+        words.append([_VECT_BASE_X | (int(vector_polarity) & 1) << 11 | (int(base_x) & 0x7FF)])
+    return np.concatenate([np.asarray(w, np.int64) for w in words]).astype("<u2").tobytes()
 
 
 class EVK4(Device):
@@ -178,6 +219,23 @@ class EVK4(Device):
             self._reset_decoder()
         d = self._decoder.feed(data)
         return d.events, d.triggers
+
+    def _decoder_state(self) -> tuple:
+        """(time us unwrapped, row, vector base x, vector polarity); -1: not set yet."""
+        if self._decoder is None:
+            return (-1, -1, -1, 0)
+        st = self._decoder._state
+        return (int(st[_evt3._S_TIME]), int(st[_evt3._S_Y]), int(st[_evt3._S_BX]), int(st[_evt3._S_VP]))
+
+    def resume_words(self, chunk) -> bytes:
+        return evt3_resume_words(*chunk.decoder_state) if chunk.decoder_state else b""
+
+    # --- contrast thresholds ------------------------------------------------------------
+    THRESHOLD_MODEL = "rig.camera.evk4.thresholds_from_biases"
+
+    def contrast_thresholds(self, biases: dict) -> tuple[float, float]:
+        """The model's (C_on, C_off) for bias offsets ``biases`` (bias_diff_on, bias_diff_off)."""
+        return thresholds_from_biases(int(biases["bias_diff_on"]), int(biases["bias_diff_off"]))
 
     # --- biases -------------------------------------------------------------------------
     @property

@@ -16,7 +16,8 @@ answers (facts in rig.camera.dvxplorer):
   at 0 when the timestamp generator starts (0,1); a multiplexer timestamp reset (0,2) = 1
   writes a timestamp-reset word and restarts time (and the source) at 0. While no event
   happens the stream still carries the timestamp-wrap word of every 2**15 us (``idle_wraps``);
-* the contrast thresholds follow the ON / OFF bias currents (``thresholds()``); the sensor's
+* the contrast thresholds follow the ON / OFF bias currents (``thresholds()``, the driver's model
+  rig.camera.dvxplorer.thresholds_from_biases); the sensor's
   cropper registers crop the events (libcaer's row-group masks, including its corner case);
   ``pulse_trigger()`` inserts external-input edge words when the detector (4,0) runs, for the
   edges it detects (4,1) rising, (4,2) falling, (4,3) pulses; ``unplug()`` pulls the cable.
@@ -38,22 +39,12 @@ import numpy as np
 from evdnerf_ros.events.types import EVENT_DTYPE, TRIGGER_DTYPE
 
 from .. import dvxplorer as D
+from ..dvxplorer import BASE_THRESHOLD, thresholds_from_biases   # the driver's model: one copy
 from ..caer_words import (TRIGGER_EDGE, TRIGGER_PULSE, CaerWordEncoder, canonical_order)
 from .scene_source import EmittedTruth, GivenEvents
 from .usb import STALL, EmulatedUsbDevice, EndpointSpec
 
 __all__ = ["VirtualDVXplorer", "thresholds_from_biases", "BASE_THRESHOLD"]
-
-#: contrast threshold (log intensity) at the middle bias current 4; the ON threshold doubles
-#: every 4 steps of current_on up, the OFF threshold every 4 steps of current_off down (so
-#: libcaer's default on=0 / off=8 gives 0.2 / 0.2, its presets symmetric pairs)
-BASE_THRESHOLD = 0.4
-
-
-def thresholds_from_biases(current_on: int, current_off: int, base: float = BASE_THRESHOLD):
-    """(C_on, C_off) of the twin for the sensor's BIAS_CURRENT_ON / BIAS_CURRENT_OFF values."""
-    return (base * 2.0 ** ((int(current_on) - 4) / 4.0), base * 2.0 ** ((4 - int(current_off)) / 4.0))
-
 
 def _as_source(source, width, height):
     if source is None:

@@ -17,7 +17,8 @@ rig.camera.evk4_registers):
   would hang it.  Sensor time starts at 0 when the time base is enabled and wraps every
   2**24 us in the words (the project's streaming encoder writes the TIME_HIGH words);
 * the source's events pass the ROI (TD_ROI_X / TD_ROI_Y masks, roi_ctrl) and the contrast
-  thresholds follow bias_diff_on / bias_diff_off (``thresholds()``); ``pulse_trigger()``
+  thresholds follow bias_diff_on / bias_diff_off (``thresholds()``, through the driver's
+  model rig.camera.evk4.thresholds_from_biases); ``pulse_trigger()``
   inserts EXT_TRIGGER rising / falling words when the trigger input (0x7004 bit 10) is on;
   ``unplug()`` pulls the cable.
 
@@ -31,7 +32,6 @@ streams: a 20 s stream takes a fraction of that).  What went out is kept as the 
 from __future__ import annotations
 
 import collections
-import math
 import os
 import struct
 import time
@@ -42,6 +42,7 @@ from evdnerf_ros.events.codecs import make_encoder
 from evdnerf_ros.events.types import EVENT_DTYPE, TRIGGER_DTYPE
 
 from .. import evk4_registers as R
+from ..evk4 import thresholds_from_biases       # the driver's model: one copy, the twin follows it
 from .scene_source import EmittedTruth
 from .usb import STALL, EmulatedUsbDevice, EndpointSpec
 
@@ -52,21 +53,9 @@ DEFAULT_FACTORY_BIASES = {"bias_pr": 0x7C, "bias_fo": 0x53, "bias_hpf": 0x00, "b
                           "bias_diff": 0x4D, "bias_diff_off": 0x49, "bias_inv": 0x5B,
                           "bias_refr": 0x14, "bias_reqpuy": 0x8C, "bias_reqpux": 0x7C,
                           "bias_sendreqpdy": 0x94, "bias_unknown_1": 0x74, "bias_unknown_2": 0x51}
-#: contrast threshold at the factory bias; each +THRESHOLD_E_FOLD DAC steps of bias_diff_on
-#: (bias_diff_off) multiply the ON (OFF) threshold by e
-BASE_THRESHOLD = 0.2
-THRESHOLD_E_FOLD = 100.0
 _REGISTER_SPACE = 0x10000          # sensor / FPGA registers live below this
 _IDENT_REPLIES = {0x01: b"CCam5 Imx636 Event-Based Camera",
                   0x03: b"psee,ccam5_imx636 psee,ccam5_gen42"}
-
-
-def thresholds_from_biases(diff_on_offset: int, diff_off_offset: int,
-                           base: float = BASE_THRESHOLD) -> tuple[float, float]:
-    """(C_on, C_off) contrast thresholds (log intensity) for bias offsets from the factory
-    values: a larger bias_diff_on / bias_diff_off makes the pixel less sensitive."""
-    return (base * math.exp(diff_on_offset / THRESHOLD_E_FOLD),
-            base * math.exp(diff_off_offset / THRESHOLD_E_FOLD))
 
 
 def _as_source(source):

@@ -10,7 +10,11 @@ changed with ``SET PROFILE`` is what the camera sees.
 
 Cost follows the data: while neither joint moves, nothing is rendered (the generator only
 advances); while one moves, frames at ``rate_hz`` are rendered on a fixed grid and joined by the
-exact generator (as ``SceneEventSource``'s fixed mode).  Generation runs in its own thread, ahead of
+exact generator (as ``SceneEventSource``'s fixed mode). "Moves" means more than ``STILL_DEG``
+from the angle last rendered: the harness's pin edges carry host times, whose jitter makes a
+still servo's pulse widths wobble by about a microsecond (0.1 deg), which a real servo's dead
+band ignores too; a camera that streams for a whole session would otherwise have its scene
+rendered without end and fall ever further behind real time.  Generation runs in its own thread, ahead of
 what the twin has streamed (``ready_ns``): the twin streams only what is rendered, so a machine
 that renders slower than real time makes the stream lag, never the camera's control requests wait.
 Frames are rendered only once the feed knows the joints beyond their time (the firmware's frames
@@ -31,6 +35,10 @@ from evdnerf_ros.events.types import EVENT_DTYPE, empty_events
 
 from ...turntable import turntable_pose
 from .scene_source import DEFAULT_CHUNK_NS, EventSource
+
+#: A joint closer than this (deg) to the angle last rendered is still (module doc): above the
+#: pin edges' jitter (~0.1 deg), within a hobby servo's dead band (1-8 us of pulse, 0.2-1.4 deg).
+STILL_DEG = 0.25
 
 
 def servo_joint(scene):
@@ -105,6 +113,7 @@ class RigDrivenSource(EventSource):
         with self._cv:
             self._epoch += 1
             self._gen = None
+            self._rendered_deg = None       # (servo, turntable) angles of the last render
             self._gen_thresholds = None
             self._ready = 0                 # sensor time generated up to
             self._wanted = 0                # furthest sensor time the twin asked about
@@ -147,6 +156,18 @@ class RigDrivenSource(EventSource):
         self.renders += 1
         return self.renderer(self.pose_at(host_ns), int(host_ns))
 
+    def _moving(self, a_ns: int, b_ns: int, rendered) -> bool:
+        """Whether a joint is more than STILL_DEG from ``rendered`` (its angles at the last
+        render) anywhere on the render grid of [a_ns, b_ns]."""
+        if rendered is None:
+            return True
+        t = np.append(np.arange(a_ns, b_ns, self.frame_ns, dtype=np.int64), b_ns)
+        return any(float(np.max(np.abs(track.deg(t) - deg))) > STILL_DEG
+                   for track, deg in zip((self.feed.servo, self.feed.turntable), rendered))
+
+    def _angles(self, host_ns: int) -> tuple[float, float]:
+        return float(self.feed.servo.deg(int(host_ns))), float(self.feed.turntable.deg(int(host_ns)))
+
     def _wait_for_joints(self, host_ns: int) -> None:
         """Until the feed knows both joints at or beyond ``host_ns`` (frames come every 20 ms)."""
         deadline = time.monotonic() + self.max_wait_s
@@ -180,7 +201,7 @@ class RigDrivenSource(EventSource):
                     self._cv.wait(0.1)
                 if self._stop:
                     return
-                epoch, a, gen = self._epoch, self._ready, self._gen
+                epoch, a, gen, rendered = self._epoch, self._ready, self._gen, self._rendered_deg
                 target = self._wanted + self.lookahead_ns
             zero = int(self.zero_host_ns())
             # never ahead of real time: the joints are not known there yet
@@ -194,22 +215,24 @@ class RigDrivenSource(EventSource):
                 self._wait_for_joints(zero)
                 gen = EventGenerator(self.width, self.height, c_pos=th[0], c_neg=th[1])
                 gen.reset(self.render_at(zero), 0)
+                rendered = self._angles(zero)
             elif th != self._gen_thresholds:        # new biases: each pixel's reference restarts
                 last = gen.last_log()
                 gen = EventGenerator(self.width, self.height, c_pos=th[0], c_neg=th[1])
                 gen.reset_log(last, a)
             self._wait_for_joints(zero + b)
-            feed = self.feed
             ev = None
-            if feed.servo.changes(zero + a, zero + b) or feed.turntable.changes(zero + a, zero + b):
+            if self._moving(zero + a, zero + b, rendered):
                 ev, _ = simulate_renderer(lambda t: self.render_at(zero + t), a, b, gen,
                                           mode="fixed", rate_hz=self.rate_hz)
                 ev = quantize_to_us(ev) if ev.size else None
+                rendered = self._angles(zero + b)
             else:                                   # nothing moves: the image is the last one
                 gen.step_log(gen.last_log(), b)
             with self._cv:
                 if self._epoch != epoch:            # restarted meanwhile: this chunk is void
                     continue
                 self._gen, self._gen_thresholds, self._ready = gen, th, b
+                self._rendered_deg = rendered
                 if ev is not None:
                     self._pending.append(ev)
