@@ -38,7 +38,7 @@ from rig.virtual_rig import VirtualRig
 RECORDING = re.compile(r"\] (view_\d+): (turntable|take)")
 DONE = re.compile(r"\] (view_\d+): (\d+) events, (\d+) trigger edges, ([\d.]+) s")
 #: per-take steps of session.yaml's timing_s, and their nominal (mechanical) parts
-STEPS = ("turn", "home", "view_open", "pre_roll", "motion", "stream_catch_up", "bag_close")
+STEPS = ("turn", "home", "view_open", "pre_roll", "stream_wait", "motion", "stream_catch_up", "bag_close")
 
 
 def _lost_in_views(out, session, emitted) -> tuple[int, int]:
@@ -93,12 +93,13 @@ def capture_once(size, views: int, repeats: int, tmp) -> dict:
     record_s = [float(m.group(4)) for m in map(DONE.search, lines) if m]
     cycles = [b - a for a, b in zip(bounds, bounds[1:])]
     timing = [v["timing_s"] for v in session["views"]]            # per view, per take
-    catch_up = [sum(t.get("stream_catch_up", 0.0) for t in takes) for takes in timing]
+    # the twin lagging real time: waited for before RUN (stream_wait) or after DONE (stream_catch_up)
+    catch_up = [sum(t.get("stream_catch_up", 0.0) + t.get("stream_wait", 0.0) for t in takes) for takes in timing]
     own = [c - mech - u for c, u in zip(cycles, catch_up)]
     nominal = {"turn": opts.turn_ms / 1e3, "home": home_s, "pre_roll": opts.pre_roll_s, "motion": motion_s}
     # the capture's own overhead, step by step (beyond each step's mechanical part), per view
     steps = [{k: sum(t.get(k, 0.0) - nominal.get(k, 0.0) * (k in t) for t in takes)
-              for k in STEPS if k != "stream_catch_up"} for takes in timing]
+              for k in STEPS if k not in ("stream_catch_up", "stream_wait")} for takes in timing]
     for row, o in zip(steps, own):
         row["unaccounted"] = o - sum(row.values())
     recorded, lost = _lost_in_views(out, session, emitted)
@@ -108,7 +109,7 @@ def capture_once(size, views: int, repeats: int, tmp) -> dict:
             "overhead_s": [c - mech for c in cycles], "stream_catch_up_s": catch_up,
             "capture_overhead_s": own, "capture_overhead_steps_s": steps,
             "median_step_s": {k: float(np.median([t[k] for takes in timing for t in takes if k in t]))
-                              for k in STEPS},
+                              for k in STEPS if any(k in t for takes in timing for t in takes)},
             "camera_start_s": stream.get("camera_start_s"), "camera_stop_s": stream.get("camera_stop_s"),
             "twin_late_renders": late,
             "events_recorded": recorded, "events_lost_in_views": lost,

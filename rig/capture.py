@@ -162,7 +162,8 @@ class ViewResult:
     duration_s: float
     error: str | None = None
     #: where the view's wall time went (s): home (the servo to the profile's start, round trips
-    #: included; 0 when it stood there), view_open (bag and span), pre_roll, motion (RUN sent to
+    #: included; 0 when it stood there), stream_wait (before the view opens, a stream lagging real
+    #: time catching up with the present), view_open (bag and span), pre_roll, motion (RUN sent to
     #: DONE received), stream_catch_up (DONE + settle in real time to the camera's stream
     #: reaching it: the camera's latency), bag_close (metadata and the bag's index)
     timing_s: dict = field(default_factory=dict)
@@ -194,9 +195,14 @@ def record_view(stream: CameraStream, servo, path: Path, *, K, D, pose, options:
         run_sent = None
         done_ns = None                      # DONE's sensor time, once the clocks place it
         try:
+            # a stream lagging real time (a camera twin rendering slower than real time) first
+            # catches up with the present, so its lag never adds up over the views of a session
+            waited = _catch_up(stream, stop)
+            if waited:
+                timing["stream_wait"] = waited
             span = stream.open_span(writer)
             started = time.monotonic()      # the pre-roll counts from here: RUN never precedes it
-            timing["view_open"] = started - t0
+            timing["view_open"] = started - t0 - waited
             while not stop.is_set():
                 stream.check()
                 now = time.monotonic()
@@ -258,6 +264,26 @@ def record_view(stream: CameraStream, servo, path: Path, *, K, D, pose, options:
                         None if error is None else str(error), {k: round(v, 4) for k, v in timing.items()},
                         (span.start_host_ns if span is not None else closed, closed))
     return result, error
+
+
+def _catch_up(stream: CameraStream, stop: threading.Event) -> float:
+    """Wait (at most STREAM_LAG_S) until the stream has delivered the sensor time of now, or has
+    gone quiet (a sensor without activity sends nothing: nothing to wait for); the seconds waited.
+    Nothing to wait for before the stream's first timed transfer."""
+    tic = time.monotonic()
+    try:
+        target = int(stream.clock.host_ns_to_sensor_ns(time.monotonic_ns()))
+    except CameraError:
+        return 0.0
+    while not stop.is_set() and time.monotonic() - tic < STREAM_LAG_S:
+        stream.check()
+        reached = stream.device.sensor_time_ns
+        last = stream.last_chunk_host_ns
+        if (reached is not None and reached >= target) or \
+                (last is not None and time.monotonic() - last / 1e9 > QUIET_S):
+            break
+        stream.wait(POLL_S)
+    return time.monotonic() - tic
 
 
 def _sensor_ns_of(writer, camera, servo, start, device_us: int, clock) -> int | None:

@@ -51,15 +51,20 @@ class Listener(Node):
     NAME = "listener"
 
 
-def _discovery(sub, timeout=3.0):
-    deadline = time.monotonic() + timeout
+def _discovery(sub, gid: str, timeout=10.0):
+    """The latest ros_discovery_info sample of participant ``gid`` (another participant that
+    happens to share the random domain is ignored), after at least 0.5 s of listening."""
+    start = time.monotonic()
     last = None
-    while time.monotonic() < deadline:
+    while time.monotonic() < start + timeout:
         sub.wait(0.05)
         for data, _ in sub.take_raw():
-            last = parse_discovery_info(data)
-        if last is not None and time.monotonic() > deadline - timeout + 0.5:
+            info = parse_discovery_info(data)
+            if info is not None and info["gid"] == gid:
+                last = info
+        if last is not None and time.monotonic() > start + 0.5:
             break
+    assert last is not None, f"no ros_discovery_info sample of participant {gid} within {timeout} s"
     return last
 
 
@@ -71,8 +76,8 @@ def test_discovery_info_lists_the_node_and_its_endpoint_gids():
     # transient local: a late joiner still gets the participant's current sample
     sub = DdsSubscription(ctx, "/" + "ros_discovery_info", PARTICIPANT_INFO, DISCOVERY_QOS,
                           dds_name="ros_discovery_info", idl=rostypes.idl_struct(PARTICIPANT_INFO))
-    info = _discovery(sub)
-    assert info["gid"] == node.dds.gid.hex() and len(node.dds.gid) == 16
+    info = _discovery(sub, node.dds.gid.hex())
+    assert len(node.dds.gid) == 16
     [entry] = info["nodes"]
     assert (entry["namespace"], entry["name"]) == ("/cam", "listener")
     assert pub.dds.gid.hex() in entry["writers"] and node.ros.rosout.writer.gid.hex() in entry["writers"]
@@ -80,7 +85,7 @@ def test_discovery_info_lists_the_node_and_its_endpoint_gids():
     assert len(entry["readers"]) == 6 and len(entry["writers"]) == 6 + 2 + 1
     assert all(g[:24] == info["gid"][:24] for g in entry["readers"] + entry["writers"])   # same GUID prefix
     late = node.create_subscription("in", "std_msgs/msg/String")
-    info = _discovery(sub)
+    info = _discovery(sub, node.dds.gid.hex())
     assert late.gid.hex() in info["nodes"][0]["readers"]
     node.shutdown()
     ctx.close()
@@ -149,7 +154,8 @@ def test_fastdds_peer_sees_our_graph_events_and_parameters(fastdds_peer, tmp_pat
     publish_raw = dds_pub.publish_raw
     dds_pub.publish_raw = lambda data: (sent.append(bytes(data)), publish_raw(data))
     etype = rostypes.dds_type_name(EVENT_PACKET)
-    args = [str(fastdds_peer), "--domain", str(domain), "--duration", "5", "--out", str(tmp_path),
+    # the peer listens 10 s: a loaded machine may take seconds to start the node and match it
+    args = [str(fastdds_peer), "--domain", str(domain), "--duration", "10", "--out", str(tmp_path),
             "--sub", "rt/event_publisher/events", etype, "reliable",
             "--sub", "ros_discovery_info", rostypes.dds_type_name(PARTICIPANT_INFO), "reliable_transient",
             "--pub", "rt/peer/events", etype, "reliable", str(tmp_path / "packet0.bin"), "150"]   # 10 ms apart
