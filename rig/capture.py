@@ -68,6 +68,8 @@ QUIET_NEAR_END_NS = 100_000_000
 TRIGGER_GRACE_NS = 1_000_000_000
 #: After DONE + settle, a stream still this far (s) from reaching it is a fault (the view is incomplete).
 STREAM_LAG_S = 15.0
+#: Before a view: how long a lagging stream may take to catch up before it is restarted.
+CATCH_UP_S = 3.0
 #: How often (s) a view's loop looks at the servo's reports when the stream brings nothing.
 POLL_S = 0.01
 #: Where session.yaml's thresholds come from (--thresholds-from) and how the views record it.
@@ -197,7 +199,7 @@ def record_view(stream: CameraStream, servo, path: Path, *, K, D, pose, options:
         try:
             # a stream lagging real time (a camera twin rendering slower than real time) first
             # catches up with the present, so its lag never adds up over the views of a session
-            waited = _catch_up(stream, stop)
+            waited = _catch_up(stream, stop, log)
             if waited:
                 timing["stream_wait"] = waited
             span = stream.open_span(writer)
@@ -266,21 +268,28 @@ def record_view(stream: CameraStream, servo, path: Path, *, K, D, pose, options:
     return result, error
 
 
-def _catch_up(stream: CameraStream, stop: threading.Event) -> float:
-    """Wait (at most STREAM_LAG_S) until the stream has delivered the sensor time of now, or has
-    gone quiet (a sensor without activity sends nothing: nothing to wait for); the seconds waited.
-    Nothing to wait for before the stream's first timed transfer."""
+def _catch_up(stream: CameraStream, stop: threading.Event, log=print) -> float:
+    """Wait until the stream has delivered the sensor time of now, or has gone quiet (a sensor
+    without activity sends nothing: nothing to wait for); a stream still behind after
+    CATCH_UP_S is restarted (its backlog dropped, as a start / stop per view would). Nothing to
+    wait for before the stream's first timed transfer. Returns the seconds this took."""
     tic = time.monotonic()
     try:
         target = int(stream.clock.host_ns_to_sensor_ns(time.monotonic_ns()))
     except CameraError:
         return 0.0
-    while not stop.is_set() and time.monotonic() - tic < STREAM_LAG_S:
+    while not stop.is_set():
         stream.check()
         reached = stream.device.sensor_time_ns
         last = stream.last_chunk_host_ns
         if (reached is not None and reached >= target) or \
                 (last is not None and time.monotonic() - last / 1e9 > QUIET_S):
+            break
+        if time.monotonic() - tic > CATCH_UP_S:
+            behind = (target - reached) / 1e9 if reached is not None else float("nan")
+            stream.restart()
+            log(f"the camera's stream was {behind:.1f} s behind real time and did not catch up "
+                f"within {CATCH_UP_S:g} s: restarted it (restart {stream.restarts})")
             break
         stream.wait(POLL_S)
     return time.monotonic() - tic
@@ -518,6 +527,7 @@ def _stream_record(stream: CameraStream, camera) -> dict:
     """session.yaml's ``stream``: the camera's one start and stop, and what it streamed outside
     every view (per view: views[].discarded_before)."""
     return {"camera_start_s": round(stream.start_s, 4), "camera_stop_s": round(stream.stop_s, 4),
+            "restarts": int(stream.restarts),
             "discarded": dict(vars(stream.discarded)), "discarded_after_last_view": stream.discarded_since_span(),
             "dropped_transfers": int(camera.stats.dropped_chunks)}
 

@@ -206,6 +206,43 @@ def test_a_camera_fault_in_the_reader_reaches_the_recording_side(rng):
         stream.stop()
 
 
+def test_a_stream_that_cannot_catch_up_is_restarted_before_a_view(rng, monkeypatch):
+    """A camera that falls behind real time (a twin rendering slower than real time) first gets
+    the chance to catch up before a view opens; one still behind after CATCH_UP_S is restarted
+    (a new sensor zero and clock), and one that keeps up is left alone."""
+    import threading
+
+    from rig import capture
+
+    class Lagging(ScriptedEVK4):
+        """After the first 0.2 s its sensor time runs at a tenth of real time."""
+
+        def read_raw(self, timeout_s=1.0):
+            real = time.monotonic_ns() - self._t0 - SENSOR_START_NS
+            if real > 200_000_000 and self._stream is not None:
+                self._t0 += int((time.monotonic_ns() - getattr(self, "_last", time.monotonic_ns())) * 0.9)
+            self._last = time.monotonic_ns()
+            return super().read_raw(timeout_s)
+
+    monkeypatch.setattr(capture, "CATCH_UP_S", 0.5)
+    logged = []
+    for cam, restarted in ((ScriptedEVK4(rng), False), (Lagging(rng), True)):
+        stream = CameraStream(cam).start()
+        try:
+            time.sleep(1.0)
+            origin, clock = stream.origin, stream.clock
+            waited = capture._catch_up(stream, threading.Event(), logged.append)
+            assert (stream.restarts == 1) is restarted and (stream.origin is not origin) is restarted
+            assert (stream.clock is not clock) is restarted
+            assert waited < (capture.CATCH_UP_S + 2.0 if restarted else 0.5), waited
+            stream.open_span(None)
+            with pytest.raises(RuntimeError, match="span is open"):
+                stream.restart()
+        finally:
+            stream.stop()
+    assert len(logged) == 1 and "did not catch up" in logged[0] and "restarted it" in logged[0], logged
+
+
 # --------------------------------------------------------------------------- bias -> threshold models
 
 

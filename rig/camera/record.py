@@ -244,6 +244,7 @@ class CameraStream:
         self.error: BaseException | None = None
         self.last_chunk_host_ns: int | None = None
         self.start_s = self.stop_s = 0.0         # wall time camera.start() / stop() took
+        self.restarts = 0                        # restart(): a stream that could not catch up
         self._span: Span | None = None
         self._lock = threading.Lock()
         self._progress = threading.Condition(self._lock)
@@ -274,6 +275,23 @@ class CameraStream:
         except CameraError:
             pass
         self.stop_s = time.monotonic() - tic
+
+    def restart(self) -> None:
+        """Stop and start the camera again: for a stream too far behind real time to catch up (a
+        camera twin rendering slower than real time), whose backlog is dropped as a start / stop
+        per view would; the stream gets a new sensor zero and clock. Between spans only."""
+        with self._lock:
+            if self._span is not None:
+                raise RuntimeError("CameraStream: restart while a span is open")
+        self.stop()
+        self.restarts += 1
+        self._stop = threading.Event()
+        self.origin = StreamOrigin()
+        if self.live is not None:
+            self.live.origin = self.origin
+        self.clock = ArrivalClock(self.device.name)
+        self.last_chunk_host_ns = None
+        self.start()
 
     def __enter__(self) -> "CameraStream":
         return self.start()
