@@ -1,4 +1,5 @@
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -119,3 +120,14 @@ def virtual_rig(built, rig_lock):
 
     with VirtualRig(scene_size=RIG_SCENE, rate_hz=RIG_RATE_HZ) as vr:
         yield vr
+
+
+def ros_domain() -> int:
+    """A DDS domain (1..200) for one test: random, from a range of its own for each xdist worker,
+    so tests running at the same time in two workers never share a domain (a foreign node's
+    /tf_static or discovery sample in a test's domain fails it)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    count = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+    index = int(worker[2:]) if worker[2:].isdigit() else 0
+    size = max(1, 200 // count)
+    return 1 + (index % count) * size + (os.getpid() + time.time_ns() // 1000) % size

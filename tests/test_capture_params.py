@@ -10,6 +10,8 @@ import threading
 import time
 
 import pytest
+
+from conftest import ros_domain
 import yaml
 
 from rig.capture import CaptureOptions
@@ -18,7 +20,7 @@ from rig.capture import CaptureOptions
 
 
 def _domain() -> int:
-    return 1 + (os.getpid() * 53 + time.time_ns() // 1000) % 200
+    return ros_domain()
 
 
 def _until(what, timeout_s: float, poll_s: float = 0.02):

@@ -105,7 +105,7 @@ class ScriptedEVK4(EVK4):
         time.sleep(0.005)
         now = time.monotonic_ns() - self._t0
         n = int((now - self._made) * 4000 // 10**9)
-        if n:
+        if n > 0:                                 # (a lagging camera: its sensor time may stand still)
             ev = _events(self.rng, n, self._made, now - self._made)
             self.sent.append(ev)
             self._pending += self._encoder.encode(ev)

@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 import pytest
 
-from conftest import child_pids, pid_alive
+from conftest import child_pids, pid_alive, ros_domain
 
 EVDNERF = [sys.executable, "-m", "evdnerf_ros"]
 SENTINEL = "user data: must survive"
@@ -436,7 +436,7 @@ def test_sigkilled_run_leaves_a_partial_the_next_run_cleans(ws, tmp_path):
 def test_echo_idle_ends_a_wait_on_a_silent_topic(tmp_path):
     t0 = time.monotonic()
     res = run(["echo", "/nobody/publishes/here", "--idle", "1", "--json"], tmp_path, timeout=60,
-              env={**os.environ, "ROS_DOMAIN_ID": "87"})
+              env={**os.environ, "ROS_DOMAIN_ID": str(ros_domain())})
     assert res.returncode == 0, res.stderr
     assert time.monotonic() - t0 < 30
     assert '"messages": 0' in res.stdout

@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import ros_domain
+
 from evdnerf_ros.events.codecs import make_decoder, quantize_to_us
 from evdnerf_ros.io import event_messages as em
 from evdnerf_ros.io.rosbag2 import open_bag, read_events
@@ -47,7 +49,7 @@ pickle.dump(got, open(sys.argv[1], "wb"))
 
 @pytest.fixture
 def dds_env(monkeypatch):
-    domain = str(1 + (os.getpid() * 31 + time.time_ns() // 1000) % 200)
+    domain = str(ros_domain())
     monkeypatch.setenv("ROS_DOMAIN_ID", domain)
     monkeypatch.setenv("ROS_LOCALHOST_ONLY", "1")
     monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)

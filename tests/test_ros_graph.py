@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import ros_domain
+
 from evdnerf_ros.ros import rostypes
 from evdnerf_ros.ros.graph import DISCOVERY_QOS, PARTICIPANT_INFO, parse_discovery_info
 from evdnerf_ros.ros.node import Node
@@ -26,7 +28,7 @@ EVENT_PACKET = "event_camera_msgs/msg/EventPacket"
 
 
 def _domain() -> int:
-    return 1 + (os.getpid() * 41 + time.time_ns() // 1000) % 200
+    return ros_domain()
 
 
 def test_type_hashes_match_published_values():

@@ -11,6 +11,8 @@ import time
 import numpy as np
 import pytest
 
+from conftest import ros_domain
+
 from evdnerf_ros.errors import InputError
 from evdnerf_ros.ros import rostypes
 from evdnerf_ros.ros.node import Node
@@ -23,7 +25,7 @@ from evdnerf_ros.ros.transport import DdsContext, DdsPublisher, DdsSubscription
 
 
 def _domain() -> int:
-    return 1 + (os.getpid() * 37 + time.time_ns() // 1000) % 200
+    return ros_domain()
 
 
 class Talker(Node):

@@ -8,6 +8,8 @@ import time
 import numpy as np
 import pytest
 
+from conftest import ros_domain
+
 from evdnerf_ros.errors import InputError
 from evdnerf_ros.ros import tf as rtf
 from evdnerf_ros.ros import rostypes
@@ -46,7 +48,7 @@ def _take(sub, n_min, timeout=5.0):
 def test_publisher_sends_tf_tf_static_and_clock(tmp_path):
     from evdnerf_ros.nodes.event_publisher import EventPublisher
 
-    domain = 1 + (os.getpid() * 43 + time.time_ns() // 1000) % 200
+    domain = ros_domain()
     traj = tmp_path / "traj.csv"
     traj.write_text("t_ns,x,y,z,qx,qy,qz,qw\n0,0,0,0,0,0,0,1\n50000000,0.05,0,0,0,0,0,1\n"
                     "100000000,0.1,0,0,0,0,0.0499792,0.9987503\n")
@@ -90,7 +92,7 @@ def test_publisher_sends_tf_tf_static_and_clock(tmp_path):
 def test_clock_only_when_not_real_time_and_tf_switch():
     from evdnerf_ros.nodes.event_publisher import EventPublisher
 
-    domain = 1 + (os.getpid() * 47 + time.time_ns() // 1000) % 200
+    domain = ros_domain()
     common = {"camera.width": 8, "camera.height": 8, "duration": 0.01}
     with EventPublisher((), overrides={**common, "realtime_factor": 1.0}, domain_id=domain,
                         dds_config=LOOPBACK_XML) as node:

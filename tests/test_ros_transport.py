@@ -9,6 +9,8 @@ import time
 import numpy as np
 import pytest
 
+from conftest import ros_domain
+
 from evdnerf_ros.io import messages
 from evdnerf_ros.io.typestore import ros2_typestore
 from evdnerf_ros.ros.idl import idl_type, to_idl
@@ -17,7 +19,7 @@ from evdnerf_ros.ros.transport import DdsContext, DdsPublisher, DdsSubscription
 
 
 def _domain() -> int:
-    return 1 + (os.getpid() * 7919 + time.time_ns() // 1000) % 200
+    return ros_domain()
 
 
 @pytest.fixture

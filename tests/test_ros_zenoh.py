@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import ros_domain
+
 from evdnerf_ros.io.typestore import ros2_typestore
 from evdnerf_ros.ros import zenoh_transport as zt
 from evdnerf_ros.ros.transport import TransportError
@@ -135,7 +137,7 @@ def _listen(port: int) -> str:
 
 
 def _domain() -> int:
-    return 1 + (os.getpid() * 7919 + time.time_ns() // 1000) % 200
+    return ros_domain()
 
 
 def _peer(mode, port, domain, path):
