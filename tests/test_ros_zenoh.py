@@ -217,12 +217,15 @@ def test_publisher_to_independent_zenoh_peer(tmp_path):
             sent[conn.topic].append(bytes(raw))
     for topic, name in (("/event_publisher/events", EVENT_PACKET), ("/event_publisher/camera_info", CAMERA_INFO)):
         got = out["got"][name]
-        assert [p for _, p, _, _ in got] == sent[topic] and len(got) >= 1
+        # the node waits for the events' subscriber only: on a loaded machine the peer may match
+        # camera_info a message late, so that topic's got is the tail of what was sent
+        first = 0 if name == EVENT_PACKET else len(sent[topic]) - len(got)
+        assert [p for _, p, _, _ in got] == sent[topic][first:] and len(got) >= 1
         h = ros2_typestore().hash_rihs01(name)
         assert {k for k, _, _, _ in got} == {f"{domain}{topic}/{name.replace('/msg/', '::msg::dds_::')}_/{h}"}
         atts = [zt.parse_attachment(a) for _, _, a, _ in got]
         assert all(len(a) == 33 for _, _, a, _ in got)
-        assert [a[0] for a in atts] == list(range(1, len(got) + 1))           # sequence numbers from 1
+        assert [a[0] for a in atts] == list(range(first + 1, first + len(got) + 1))   # sequence numbers from 1
         assert all(t_start <= a[1] <= recv for a, (_, _, _, recv) in zip(atts, got))   # source time, UNIX ns
         assert len({a[2] for a in atts}) == 1                                   # one 16-byte GID per publisher
         token = next(t for t in out["tokens"] if f"/MP/%/%/event_publisher/{topic.replace('/', '%')}/" in t)
