@@ -105,6 +105,38 @@ def test_sampler_proportions(train_set):
     assert view_counts.min() > 0.7 * n / len(s.views)          # views uniform per ray
 
 
+def test_sampler_spans(train_set):
+    """A span batch's log change is the sum over its windows (what the events between its two
+    edges give), its event rays lie on pixels that change in it, and the edges stay among
+    the usable windows; span_fraction 0 draws exactly what it drew before spans existed."""
+    from evdnerf_ros.events.slicing import window_edges
+
+    s = RaySampler(train_set, event_ray_fraction=0.5, seed=4)
+    s.set_windows(8)
+    t0, t1 = train_set.time_range
+    edges = window_edges(t0, t1, 8)
+    spans = set()
+    for _ in range(30):
+        b = s.sample(300, usable_windows=6, span_fraction=1.0)
+        assert 1 <= b.span and b.window + b.span <= 6
+        spans.add(b.span)
+        want = np.stack([train_set.log_change_stack(v, edges[[b.window, b.window + b.span]]).reshape(-1)
+                         for v in s.views])[b.views, b.pixels]
+        np.testing.assert_allclose(b.dl.numpy(), want, rtol=0, atol=1e-5)
+        assert b.t0 == pytest.approx(b.window / 8) and b.t1 == pytest.approx((b.window + b.span) / 8)
+        assert b.on_event.numpy()[b.dl.numpy() != 0].all()
+        ev = b.on_event[:150].numpy()
+        has = np.array([s.span_pixels(int(v), b.window, b.window + b.span).size > 0 for v in b.views[:150]])
+        assert ev[has].all()
+    assert len(spans) >= 3 and max(spans) > 1
+    a, c = RaySampler(train_set, seed=9), RaySampler(train_set, seed=9)
+    a.set_windows(8)
+    c.set_windows(8)
+    for _ in range(3):
+        x, y = a.sample(64), c.sample(64, span_fraction=0.0)
+        assert x.window == y.window and np.array_equal(x.pixels, y.pixels) and y.span == 1
+
+
 def test_sampler_crop(train_set):
     s = RaySampler(train_set, event_ray_fraction=0.5, seed=1)
     s.set_windows(4)

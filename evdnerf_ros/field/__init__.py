@@ -3,6 +3,8 @@
 - ``DynamicField`` (base): ``forward(x, t) -> (density, grey)`` plus the static-view reuse
   pair ``space_features(x)`` / ``decode(features, t)``.
 - ``PlanesField`` (``planes``, default): K-Planes/HexPlane-style factorised 4D field.
+- ``WarpField`` (``warp``): a static canonical triplane seen through a warp of space-time
+  planes (D-NeRF's deformation on grids).
 - ``DNeRFField`` (``dnerf``): the paper's deformation + canonical MLPs.
 - ``render``: rays, ray-box intersection, sampling, volume rendering.
 - ``FieldRenderer``: a field as a ``evdnerf_ros.renderer.Renderer`` (``renderer.py``).
@@ -10,6 +12,7 @@
 - ``DynamicRegion``: where the scene may change (visual hull of the event footprints).
 """
 
+from .background import BackgroundMap
 from .base import DynamicField, normalized_time
 from .dnerf import DNeRFField, positional_encoding
 from .dynamic_region import DynamicRegion, event_footprint
@@ -18,21 +21,28 @@ from .planes import PlanesField
 from .render import (camera_rays, normalize_points, ray_box_intersect, render_image,
                      render_rays, sample_along_rays, volume_weights)
 from .renderer import FieldRenderer
+from .warp import WarpField
 
-BACKBONES = {"planes": PlanesField, "dnerf": DNeRFField}
+BACKBONES = {"planes": PlanesField, "warp": WarpField, "dnerf": DNeRFField}
 
 
-def make_field(name: str = "planes", **kwargs) -> DynamicField:
-    """Build a backbone by name (``planes`` or ``dnerf``) with its keyword sizes."""
+def make_field(name: str = "planes", *, background_cells: int = 0, background_grey: float = 0.5,
+               **kwargs) -> DynamicField:
+    """Build a backbone by name (``planes`` or ``dnerf``) with its keyword sizes; with
+    ``background_cells`` > 0 it carries a learned ``BackgroundMap`` of that many azimuth
+    cells, starting at ``background_grey`` everywhere."""
     try:
         cls = BACKBONES[name]
     except KeyError:
         raise ValueError(f"unknown field backbone {name!r}; choose from "
                          f"{sorted(BACKBONES)}") from None
-    return cls(**kwargs)
+    field = cls(**kwargs)
+    if background_cells:
+        field.background_map = BackgroundMap(background_cells, background_grey)
+    return field
 
 
-__all__ = ["DynamicField", "PlanesField", "DNeRFField", "OccupancyGrid", "DynamicRegion", "FieldRenderer",
+__all__ = ["BackgroundMap", "DynamicField", "PlanesField", "WarpField", "DNeRFField", "OccupancyGrid", "DynamicRegion", "FieldRenderer",
            "event_footprint", "BACKBONES",
            "make_field", "normalized_time", "camera_rays", "normalize_points", "ray_box_intersect",
            "render_image", "render_rays", "sample_along_rays", "volume_weights",

@@ -114,6 +114,8 @@ class BakedField(DynamicField):
             for k, (dens, grey) in enumerate(field.evaluate_times(xc, cols, dyn)):
                 frames[k, 0, s:s + chunk], frames[k, 1, s:s + chunk] = dens.float(), grey.float()
         out = cls(static.reshape(2, r, r, r), frames.reshape(tb, 2, *fcounts), flo, fhi)
+        if getattr(field, "background_map", None) is not None:
+            out.background_map = field.background_map     # the same backdrop, not baked
         return out.to(dev)
 
     # ----- the field interface

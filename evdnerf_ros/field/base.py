@@ -45,6 +45,11 @@ class DynamicField(nn.Module, abc.ABC):
     #: True where ``space_features``/``decode`` actually save work.
     reuses_space_features: bool = False
 
+    # ``background_map``: a learned ``BackgroundMap`` (grey per ray direction) that
+    # ``make_field`` may attach as a submodule (saved with the field's weights); absent, the
+    # renderer's constant background is used (``render.background_grey``).  Not a class
+    # attribute: that would shadow the submodule nn.Module keeps in ``_modules``.
+
     @abc.abstractmethod
     def forward(self, x: torch.Tensor, t: torch.Tensor):
         """(N, 3) normalised x, (N, 1) t -> (density (N,), grey (N,))."""

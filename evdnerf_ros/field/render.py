@@ -12,7 +12,9 @@ for its whole bin (delta = bin length), so a constant density sigma gives opacit
 ``1 - exp(-sigma * length)``.  Rays that miss the box (or whose clipped interval is empty)
 render the background.
 
-Rendered grey = sum_i w_i c_i + (1 - sum_i w_i) * background, linear intensity.
+Rendered grey = sum_i w_i c_i + (1 - sum_i w_i) * background, linear intensity, where
+background is the field's learned ``BackgroundMap`` of the ray direction when it has one
+(``field.background_map``), else the constant ``background``.
 
 Static-view reuse: ``render_rays`` accepts a list of times; all of them share the same
 samples and the field's space features (``DynamicField.evaluate_times``).
@@ -81,6 +83,13 @@ def normalize_points(points: torch.Tensor, box) -> torch.Tensor:
     return ((points - lo) / (hi - lo) * 2.0 - 1.0).clamp(-1.0, 1.0)
 
 
+def background_grey(field: DynamicField, dirs: torch.Tensor, background: float):
+    """What rays leaving the box unoccluded see: the field's learned background map of the
+    ray direction ((N,) tensor) when it has one, else the constant ``background``."""
+    bg_map = getattr(field, "background_map", None)
+    return background if bg_map is None else bg_map(dirs)
+
+
 def sample_along_rays(t_near, t_far, n_samples: int, perturb: bool = False,
                       generator: torch.Generator | None = None):
     """(N, S) sample distances and (N,) bin length."""
@@ -144,6 +153,7 @@ def render_rays(field: DynamicField, origins: torch.Tensor, dirs: torch.Tensor, 
                                      None if is_dynamic is None else is_dynamic[idx])
     else:
         evals = [(None, None)] * len(times)
+    bg = background_grey(field, dirs, background)
     out = []
     for dens_v, grey_v in evals:
         sigma = torch.zeros(n * n_samples, dtype=torch.float32, device=origins.device)
@@ -155,7 +165,7 @@ def render_rays(field: DynamicField, origins: torch.Tensor, dirs: torch.Tensor, 
         grey = grey.reshape(n, n_samples)
         w = volume_weights(sigma * delta[:, None])
         acc = w.sum(dim=1)
-        out.append({"grey": (w * grey).sum(dim=1) + (1.0 - acc) * background,
+        out.append({"grey": (w * grey).sum(dim=1) + (1.0 - acc) * bg,
                     "opacity": acc, "depth": (w * z).sum(dim=1), "weights": w, "z": z})
     return out if multi else out[0]
 

@@ -24,6 +24,8 @@ rounding of batched matrix products, ~1e-7; the tests hold them to 1e-6):
   the static rays and samples are then evaluated once, and each new time costs only the
   dynamic samples.  A moving camera re-plans at every pose (no reuse possible; the plan is
   then what a plain render costs).
+- a field with a learned background (``field.background_map``) gives each ray the grey of
+  its direction where it leaves the box, computed with the plan (once per pose).
 - ``field`` may also be a :class:`~evdnerf_ros.field.baked.BakedField` (the ``bake``
   setting of :meth:`TrainedRun.renderer`): an explicit grid played back by interpolation, an
   approximation whose error the publish benchmark measures.
@@ -45,7 +47,8 @@ import torch
 from ..errors import InputError
 from ..renderer import CameraRenderer
 from .base import as_time_column
-from .render import camera_rays, normalize_points, ray_box_intersect, sample_along_rays, volume_weights
+from .render import (background_grey, camera_rays, normalize_points, ray_box_intersect,
+                     sample_along_rays, volume_weights)
 
 #: A static camera's plan is kept only while it holds at most this many bytes.
 PLAN_CACHE_BYTES = 1 << 30
@@ -57,8 +60,9 @@ POSE_SAME = 1e-9
 class _ChunkPlan:
     """One chunk of rays of one pose: what does not depend on time (module docstring)."""
 
-    __slots__ = ("static_rays", "static_grey", "dyn_rays", "delta", "base_sigma", "base_grey", "dyn_idx",
-                 "feats", "n_static_samples", "n_samples_traced", "n_rays", "nbytes")
+    __slots__ = ("static_rays", "static_grey", "dyn_rays", "dyn_background", "delta", "base_sigma",
+                 "base_grey", "dyn_idx", "feats", "n_static_samples", "n_samples_traced", "n_rays",
+                 "nbytes")
 
 
 def _feature_bytes(feats) -> int:
@@ -119,22 +123,26 @@ class FieldRenderer(CameraRenderer):
         return float(np.clip((t - self.t_origin_ns) / self.duration_ns, 0.0, 1.0))
 
     # ------------------------------------------------------------------ plan
-    def _plan(self, T) -> list[_ChunkPlan]:
+    def _plan(self, T) -> tuple[list[_ChunkPlan], torch.Tensor]:
+        """The chunk plans of pose ``T`` and the image every pixel starts from: what each ray
+        sees where it leaves the box (the background, constant or of the ray's direction)."""
         key = np.asarray(T, dtype=np.float64)
         if self.reuse_static and self._plan_cache is not None and \
                 float(np.abs(self._plan_cache[0] - key).max()) <= POSE_SAME:
-            return self._plan_cache[1]
+            return self._plan_cache[1:]
         o, d = camera_rays(self.camera, T, device=self.device)
         n = o.shape[0]
+        backdrop = torch.as_tensor(background_grey(self.field, d, self.background),
+                                   dtype=torch.float32, device=self.device).expand(n).contiguous()
         rays = torch.arange(n, device=self.device)
         if self.leave_out:
             rays = rays[self._ray_mask(o, d)]
-        plans = [self._plan_chunk(o[j], d[j], j) for j in torch.split(rays, self.chunk)]
-        if self.reuse_static and sum(p.nbytes for p in plans) <= PLAN_CACHE_BYTES:
-            self._plan_cache = (key, plans)
+        plans = [self._plan_chunk(o[j], d[j], j, backdrop[j]) for j in torch.split(rays, self.chunk)]
+        if self.reuse_static and sum(p.nbytes for p in plans) + 4 * n <= PLAN_CACHE_BYTES:
+            self._plan_cache = (key, plans, backdrop)
         else:
             self._plan_cache = None
-        return plans
+        return plans, backdrop
 
     def _ray_mask(self, o, d):
         t_near, t_far, hit = ray_box_intersect(o, d, self.box, self.near, self.far)
@@ -147,7 +155,7 @@ class FieldRenderer(CameraRenderer):
         hit[idx] = occ.any(dim=1)
         return hit
 
-    def _plan_chunk(self, o, d, rays) -> _ChunkPlan:
+    def _plan_chunk(self, o, d, rays, backdrop) -> _ChunkPlan:
         S, dev = self.n_samples, self.device
         m = o.shape[0]
         t_near, t_far, hit = ray_box_intersect(o, d, self.box, self.near, self.far)
@@ -171,9 +179,10 @@ class FieldRenderer(CameraRenderer):
         p.n_rays = m
         st = torch.nonzero(~ray_dyn).squeeze(1)
         p.static_rays = rays[st]
-        p.static_grey = _composite(sigma.reshape(m, S)[st], grey.reshape(m, S)[st], delta[st], self.background)
+        p.static_grey = _composite(sigma.reshape(m, S)[st], grey.reshape(m, S)[st], delta[st], backdrop[st])
         dy = torch.nonzero(ray_dyn).squeeze(1)
         p.dyn_rays = rays[dy]
+        p.dyn_background = backdrop[dy]
         p.delta = delta[dy]
         p.base_sigma = sigma.reshape(m, S)[dy].reshape(-1)
         p.base_grey = grey.reshape(m, S)[dy].reshape(-1)
@@ -181,7 +190,7 @@ class FieldRenderer(CameraRenderer):
         p.dyn_idx = torch.nonzero(dmask).squeeze(1)
         xd = x.reshape(m, S, 3)[dy].reshape(-1, 3)[p.dyn_idx]
         p.feats = self.field.space_features(xd) if p.dyn_idx.numel() else None
-        p.nbytes = (_feature_bytes(p.feats) + 4 * (2 * p.base_sigma.numel() + p.delta.numel())
+        p.nbytes = (_feature_bytes(p.feats) + 4 * (2 * p.base_sigma.numel() + 2 * p.delta.numel())
                     + 8 * (p.dyn_idx.numel() + p.dyn_rays.numel() + p.static_rays.numel()) + 4 * p.static_grey.numel())
         self.samples_evaluated += p.n_static_samples
         return p
@@ -196,8 +205,8 @@ class FieldRenderer(CameraRenderer):
         cam = self.camera
         n = cam.width * cam.height
         with torch.no_grad():
-            plans = self._plan(T)
-            out = torch.full((n,), self.background, dtype=torch.float32, device=self.device)
+            plans, backdrop = self._plan(T)
+            out = backdrop.clone()
             for p in plans:
                 self.samples_total += p.n_samples_traced
                 self.rays_rendered += p.n_rays
@@ -213,14 +222,16 @@ class FieldRenderer(CameraRenderer):
                     grey = grey.index_put((p.dyn_idx,), g.float())
                     self.samples_evaluated += int(p.dyn_idx.numel())
                 k = p.dyn_rays.numel()
-                out[p.dyn_rays] = _composite(sigma.reshape(k, -1), grey.reshape(k, -1), p.delta, self.background)
+                out[p.dyn_rays] = _composite(sigma.reshape(k, -1), grey.reshape(k, -1), p.delta,
+                                             p.dyn_background)
         self.rays_total += n
         img = out.reshape(cam.height, cam.width).cpu().numpy().astype(np.float32)
         return np.maximum(img, 0.0)
 
 
-def _composite(sigma, grey, delta, background: float):
-    """Rendered grey of rays from per-sample density and grey (``render.render_rays``'s rule)."""
+def _composite(sigma, grey, delta, background: torch.Tensor):
+    """Rendered grey of rays from per-sample density and grey (``render.render_rays``'s rule);
+    ``background``: (rays,) what each ray sees beyond the box."""
     w = volume_weights(sigma * delta[:, None])
     acc = w.sum(dim=1)
     return (w * grey).sum(dim=1) + (1.0 - acc) * background

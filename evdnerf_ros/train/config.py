@@ -51,7 +51,12 @@ class TrainConfig:
     far: float = 1e9
     """Far clip (metres along the ray)."""
     background: float = 0.0
-    """Grey of rays that leave the box unoccluded (linear intensity)."""
+    """Grey of rays that leave the box unoccluded (linear intensity); with
+    ``background_cells`` the learned background's starting grey."""
+    background_cells: int = 0
+    """Azimuth cells of a learned background (``field.BackgroundMap``: grey per ray
+    direction, an environment at infinity such as a simulated scene's backdrop; elevation
+    gets half as many); 0 keeps the constant ``background``."""
     perturb: bool = True
     """Stratified (random) sample positions within each bin while training."""
     occupancy_resolution: int = 0
@@ -96,6 +101,11 @@ class TrainConfig:
     window_switch: list = dc_field(default_factory=lambda: [0.5, 0.75])
     """Fractions of the run at which the next entry of ``windows`` takes over
     (len(windows) - 1 increasing values in (0, 1); paper: 100k/200k, 150k/200k)."""
+    span_fraction: float = 0.0
+    """Share of batches drawn over a span of consecutive windows (a uniform pair of distinct
+    window edges among the usable ones) instead of one window: the span's summed events give
+    the log change between two distant times, a frame-like comparison that single short
+    windows only build up step by step (``train/rays.py``)."""
     time_curriculum: float = 0.1
     """Fraction of the run over which the usable windows grow from the first
     ``time_curriculum_min`` to all of them (paper: 20k of 200k); 0 disables."""
@@ -215,6 +225,15 @@ def _normal(obj: Any):
     if isinstance(obj, float) and obj.is_integer():
         return obj
     return obj
+
+
+def field_from_config(cfg: TrainConfig):
+    """The untrained field a config describes: its backbone and sizes, and its learned
+    background when ``background_cells`` is set."""
+    from ..field import make_field
+
+    return make_field(cfg.backbone, background_cells=cfg.background_cells,
+                      background_grey=cfg.background, **cfg.field)
 
 
 def resolve_config(config) -> TrainConfig:

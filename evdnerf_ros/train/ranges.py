@@ -31,6 +31,7 @@ NUMBERS = {
     "near": (0.0, 1e9, "float", False),
     "far": (0.0, 1e12, "float", True),
     "background": (0.0, 1.0, "float", False),
+    "background_cells": (0, 16384, "int", False),
     "occupancy_resolution": (0, 1024, "int", False),
     "occupancy_every": (1, BIG, "int", False),
     "occupancy_warmup": (0, BIG, "int", False),
@@ -44,6 +45,7 @@ NUMBERS = {
     "event_ray_fraction": (0.0, 1.0, "float", False),
     "crop_warmup_iters": (0, BIG, "int", False),
     "crop_fraction": (0.0, 1.0, "float", True),
+    "span_fraction": (0.0, 1.0, "float", False),
     "time_curriculum": (0.0, 1.0, "float", False),
     "time_curriculum_min": (1, 1 << 20, "int", False),
     "mse_pred_scale": (0.0, 1e9, "float", True),
@@ -78,11 +80,16 @@ MAX_BOX = 1e6
 #: choices; "int?" allows null.  Keys of the backbone's constructor that are not listed
 #: here are passed through unchecked.
 FIELD_KEYS = {
-    "planes": {"resolutions": ("list", 1, 8192, 16), "time_resolution": (1, 8192, "int"),
+    "planes": {"resolutions": ("list", 1, 8192, 16), "time_resolution": (0, 8192, "int"),
                "features": (1, 4096, "int"), "hidden": (1, 65536, "int"),
                "hidden_layers": (0, 64, "int"), "density_activation": ("softplus", "trunc_exp"),
                "density_bias": (-1e3, 1e3, "float"), "init_range": ("pair", -1e3, 1e3),
                "seed": (0, 2 ** 63 - 1, "int?")},
+    "warp": {"resolutions": ("list", 1, 8192, 16), "features": (1, 4096, "int"),
+             "hidden": (1, 65536, "int"), "hidden_layers": (0, 64, "int"),
+             "density_activation": ("softplus", "trunc_exp"), "density_bias": (-1e3, 1e3, "float"),
+             "init_range": ("pair", -1e3, 1e3), "warp_resolution": (2, 8192, "int"),
+             "warp_time_resolution": (2, 8192, "int"), "seed": (0, 2 ** 63 - 1, "int?")},
     "dnerf": {"depth": (1, 64, "int"), "width": (1, 65536, "int"), "skip": (0, 64, "int?"),
               "pe_x": (0, 32, "int"), "pe_t": (0, 32, "int"),
               "canonical_depth": (1, 64, "int?"), "canonical_width": (1, 65536, "int?"),
@@ -140,6 +147,13 @@ def check_config(cfg, source: str = "training config") -> None:
                                    f"per change of windows {w}), got {s}")
     if cfg.box is not None:
         cfg.box = check_box(cfg.box, name("box"))
+    if cfg.background_cells and not (0.0 < cfg.background < 1.0):
+        name("background").fail(f"with background_cells the learned background starts at this "
+                                f"grey, which must lie strictly between 0 and 1 (e.g. 0.25), "
+                                f"got {cfg.background}")
+    if cfg.background_cells and cfg.background_cells < 8:
+        name("background_cells").fail(f"must be 0 (constant background) or at least 8, "
+                                      f"got {cfg.background_cells}")
     if cfg.learn_thresholds and cfg.supervision != "events":
         name("learn_thresholds").fail("needs supervision: events")
     cfg.field = check_field(cfg.backbone, cfg.field, name("field"))
@@ -206,20 +220,34 @@ def _field_sizes(cfg) -> dict:
 def field_parameters(cfg) -> int:
     """Number of trainable parameters of the configured field (closed form)."""
     f = _field_sizes(cfg)
-    if cfg.backbone == "planes":
-        res, feat, t = [int(r) for r in f["resolutions"]], int(f["features"]), int(f["time_resolution"])
+    if cfg.backbone in ("planes", "warp"):
+        res, feat = [int(r) for r in f["resolutions"]], int(f["features"])
+        t = int(f.get("time_resolution", 0))
         n = sum(3 * feat * (r * r + t * r) for r in res)
+        if cfg.backbone == "warp":
+            n += 9 * int(f["warp_time_resolution"]) * int(f["warp_resolution"])
         d, hidden = feat * len(res), int(f["hidden"])
         for _ in range(int(f["hidden_layers"])):
             n += d * hidden + hidden
             d = hidden
-        return n + d * 2 + 2
+        return n + d * 2 + 2 + background_parameters(cfg)
     depth, width = int(f["depth"]), int(f["width"])
     cd = depth if f["canonical_depth"] is None else int(f["canonical_depth"])
     cw = width if f["canonical_width"] is None else int(f["canonical_width"])
     dx, dt = 3 * (1 + 2 * int(f["pe_x"])), 1 + 2 * int(f["pe_t"])
     n = 2 * (dx + dt) * width + depth * (width * width + width) + 3 * width
-    return n + 2 * dx * cw + cd * (cw * cw + cw) + 2 * cw
+    return n + 2 * dx * cw + cd * (cw * cw + cw) + 2 * cw + background_parameters(cfg)
+
+
+def background_parameters(cfg) -> int:
+    """Parameters of the learned background (``field.BackgroundMap``: two levels)."""
+    from ..field.background import COARSE_FRACTION
+
+    cells = int(cfg.background_cells)
+    if not cells:
+        return 0
+    coarse = max(4, cells // COARSE_FRACTION)
+    return (cells // 2 + 1) * cells + (coarse // 2 + 1) * coarse
 
 
 def bytes_per_sample(cfg) -> int:
@@ -227,7 +255,7 @@ def bytes_per_sample(cfg) -> int:
     Calibrated on CPU: planes (default sizes) ~5.0 KB measured, 5.6 KB estimated; dnerf
     8 x 256 ~43 KB measured, 49 KB estimated."""
     f = _field_sizes(cfg)
-    if cfg.backbone == "planes":
+    if cfg.backbone in ("planes", "warp"):
         scales, feat = len(f["resolutions"]), int(f["features"])
         hidden = int(f["hidden"]) * max(1, int(f["hidden_layers"]))
         return 4 * (20 * scales * feat + 6 * hidden + 64)
@@ -252,6 +280,8 @@ def memory_estimates(cfg, *, views: int, pixels: int) -> list[tuple[float, str, 
                 "lower rays or n_samples"))
     if cfg.supervision == "events":
         per = 24 if cfg.learn_thresholds else 12     # float32 log change (+ counts) and scratch
+        if cfg.span_fraction:
+            per += 4                                 # the changed-window counts of spans
         n = max(cfg.windows)
         out.append((float(views) * n * pixels * per,
                     f"the window stack ({views} views x {n} windows x {pixels} pixels)",

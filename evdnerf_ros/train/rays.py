@@ -1,7 +1,11 @@
 """Ray batches for training: windows, views and pixels.
 
 A batch is drawn from one window [t0, t1) of the current window set (the sequence cut
-into ``n`` equal windows; integer ns edges).  Each ray picks a training view uniformly;
+into ``n`` equal windows; integer ns edges), or, with ``span_fraction``, from a *span* of
+consecutive windows (a uniform pair of distinct window edges): its summed events give the
+log change over that longer time, still within one threshold of the truth (the events of a
+pixel count from one reference level), so a span compares the scene at two distant times
+as two frames would, where a single window sees only a small step.  Each ray picks a training view uniformly;
 ``event_ray_fraction`` of the rays go through a pixel (uniform among them) that has at
 least one event in that window (``TrainingSet.event_pixels``), the rest through a
 uniform pixel.  A view without events in the window gives a uniform pixel instead.
@@ -81,11 +85,12 @@ class RayBatch:
     on_event: torch.Tensor     # (N,) bool: the pixel had events in the window
     t0: float                  # normalised window start
     t1: float                  # normalised window end
-    window: int                # window index in the current set
+    window: int                # (first) window index in the current set
     n_windows: int
     views: np.ndarray          # (N,) view index into the sampler's view list
     pixels: np.ndarray         # (N,) flat pixel index
     counts: torch.Tensor | None = None  # (N, 2) (positive, negative) event counts, when kept
+    span: int = 1              # consecutive windows the batch spans
 
 
 class RaySampler:
@@ -115,6 +120,7 @@ class RaySampler:
         self._dl = None                        # (V, n, P) float32
         self._counts = None                    # (V, n, P, 2) int16/int32 with keep_counts
         self._pix: dict = {}
+        self._active = None                    # (V, n + 1, P) windows with a change so far
         self._centroids: dict = {}
         self.device = torch.device("cpu")
 
@@ -141,7 +147,7 @@ class RaySampler:
         else:
             self._dl = np.stack([self.ts.log_change_stack(v, edges).reshape(len(edges) - 1, -1)
                                  for v in self.views])
-        self._edges, self._n, self._pix = edges, int(n), {}
+        self._edges, self._n, self._pix, self._active = edges, int(n), {}, None
 
     @property
     def edges(self) -> np.ndarray:
@@ -153,6 +159,17 @@ class RaySampler:
             self._pix[key] = self.ts.event_pixels(self.views[vi], int(self._edges[k]),
                                                   int(self._edges[k + 1]))
         return self._pix[key]
+
+    def span_pixels(self, vi: int, k0: int, k1: int) -> np.ndarray:
+        """Pixels of view ``vi`` whose log change is non-zero in some window of k0..k1-1."""
+        if self._active is None:
+            changed = self._dl != 0
+            if self._counts is not None:
+                changed |= self._counts.any(axis=-1)
+            dtype = np.int16 if self._n < np.iinfo(np.int16).max else np.int32
+            self._active = np.zeros((changed.shape[0], self._n + 1, changed.shape[2]), dtype)
+            np.cumsum(changed, axis=1, out=self._active[:, 1:])
+        return np.flatnonzero(self._active[vi, k1] != self._active[vi, k0])
 
     # ----- batches
     def event_centroid(self, vi: int) -> tuple[float, float]:
@@ -178,8 +195,9 @@ class RaySampler:
         return x0, y0, w, h
 
     def sample(self, rays: int, *, usable_windows: int | None = None,
-               crop: float | None = None) -> RayBatch:
-        """A batch of ``rays`` rays from one window among the first ``usable_windows``;
+               crop: float | None = None, span_fraction: float = 0.0) -> RayBatch:
+        """A batch of ``rays`` rays from one window among the first ``usable_windows``, or
+        with probability ``span_fraction`` from a span of them (module docstring);
         ``crop`` (a fraction in (0, 1]) limits the uniform rays to the crop centred on each
         view's event centroid (the paper's crop warm-up); with a dynamic region the uniform
         rays come from the pixels that see it instead, a tighter focus, and ``crop`` is moot."""
@@ -187,7 +205,12 @@ class RaySampler:
             raise RuntimeError("call set_windows(n) first")
         rng = self.rng
         m = self._n if usable_windows is None else max(1, min(self._n, int(usable_windows)))
-        k = int(rng.integers(m))
+        span = 1
+        if span_fraction > 0 and m > 1 and rng.random() < span_fraction:
+            k, k_end = sorted(int(e) for e in rng.choice(m + 1, size=2, replace=False))
+            span = k_end - k
+        else:
+            k = int(rng.integers(m))
         vi = rng.integers(len(self.views), size=rays)
         if self.active is not None:
             pix = rng.integers(self.P, size=rays)
@@ -200,23 +223,36 @@ class RaySampler:
             x = boxes[:, 0] + np.minimum((ux * boxes[:, 2]).astype(np.int64), boxes[:, 2] - 1)
             y = boxes[:, 1] + np.minimum((uy * boxes[:, 3]).astype(np.int64), boxes[:, 3] - 1)
             pix = y * self.width + x
+        if span == 1:
+            def events_in(v):
+                return self.event_pixels(v, k)
+        else:
+            def events_in(v):
+                return self.span_pixels(v, k, k + span)
         n_ev = int(round(self.frac * rays))
         # the first n_ev rays: event pixels (a view without any keeps its uniform pixel)
-        _pick_per_view(pix[:n_ev], vi[:n_ev], rng.random(n_ev), lambda v: self.event_pixels(v, k))
+        _pick_per_view(pix[:n_ev], vi[:n_ev], rng.random(n_ev), events_in)
         dev = self.device
         vi_t = torch.as_tensor(vi, device=dev)
         pix_t = torch.as_tensor(pix, device=dev)
-        dl = torch.as_tensor(self._dl[vi, k, pix], device=dev)
+        if span == 1:
+            dl = self._dl[vi, k, pix]
+            counts = None if self._counts is None else self._counts[vi, k, pix].astype(np.int32)
+        else:
+            ks = np.arange(k, k + span)[None, :]
+            dl = self._dl[vi[:, None], ks, pix[:, None]].sum(axis=1, dtype=np.float32)
+            counts = None if self._counts is None else \
+                self._counts[vi[:, None], ks, pix[:, None]].astype(np.int32).sum(axis=1)
         on_event = np.zeros(rays, bool)
         for v in np.unique(vi):                    # mark every ray whose pixel had events
             sel = vi == v
-            on_event[sel] = np.isin(pix[sel], self.event_pixels(int(v), k))
-        tn = self.ts.normalized_time(self._edges[k:k + 2])
-        return RayBatch(origins=self.origins[vi_t, pix_t], dirs=self.dirs[vi_t, pix_t], dl=dl,
+            on_event[sel] = np.isin(pix[sel], events_in(int(v)))
+        tn = self.ts.normalized_time(self._edges[[k, k + span]])
+        return RayBatch(origins=self.origins[vi_t, pix_t], dirs=self.dirs[vi_t, pix_t],
+                        dl=torch.as_tensor(dl, device=dev),
                         on_event=torch.as_tensor(on_event, device=dev), t0=float(tn[0]), t1=float(tn[1]),
-                        window=k, n_windows=self._n, views=vi, pixels=pix,
-                        counts=None if self._counts is None
-                        else torch.as_tensor(self._counts[vi, k, pix].astype(np.int32), device=dev))
+                        window=k, n_windows=self._n, views=vi, pixels=pix, span=span,
+                        counts=None if counts is None else torch.as_tensor(counts, device=dev))
 
 
 @dataclass

@@ -107,10 +107,10 @@ class TrainedRun:
     def field(self):
         """The trained field (eval mode), built and loaded on first use."""
         if self._field is None:
-            from ..field import make_field
+            from .config import field_from_config
 
             cfg, where = self.config, self.checkpoint_path
-            field = make_field(cfg.backbone, **cfg.field)
+            field = field_from_config(cfg)
             state = self.checkpoint["field"]
             if not isinstance(state, dict):
                 raise CheckpointError(f"{where}: its field weights are a {type(state).__name__}, not a "

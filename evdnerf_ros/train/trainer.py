@@ -43,11 +43,11 @@ import numpy as np
 import torch
 
 from ..errors import EvdnerfError, InputError
-from ..field import DynamicRegion, OccupancyGrid, make_field, render_rays
+from ..field import DynamicRegion, OccupancyGrid, render_rays
 from ..limits import check_number
 from .checkpoint import (CheckpointError, global_rng_states, load_checkpoint, save_checkpoint,
                          set_global_rng_states)
-from .config import TrainConfig, _normal, resolve_config
+from .config import TrainConfig, _normal, field_from_config, resolve_config
 from .interrupts import DeferredInterrupts
 from .losses import bin_loss, mse_loss, no_event_hinge
 from .ranges import NUMBERS, check_training_memory
@@ -69,7 +69,7 @@ def plane_regularisers(field, cfg: TrainConfig) -> torch.Tensor | None:
     if not hasattr(field, "space_planes") or not (cfg.tv_weight or cfg.time_smooth_weight
                                                   or cfg.time_l1_weight):
         return None
-    total = torch.zeros((), device=field.time_planes[0].device)
+    total = torch.zeros((), device=field.space_planes[0].device)
     if cfg.tv_weight:
         for p in field.space_planes:
             total = total + cfg.tv_weight * (((p[..., 1:, :] - p[..., :-1, :]) ** 2).mean()
@@ -114,7 +114,7 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.box = np.asarray(cfg.box, np.float64) if cfg.box is not None else \
             default_box(train_set, cfg.box_fraction)
-        self.field = make_field(cfg.backbone, **cfg.field).to(self.device)
+        self.field = field_from_config(cfg).to(self.device)
         self.params = [p for p in self.field.parameters() if p.requires_grad]
         groups = [{"params": self.params, "lr_scale": 1.0}]
         self.c_pos, self.c_neg = (float(c) for c in train_set.thresholds)
@@ -231,7 +231,8 @@ class Trainer:
         if self.frame_sampler is not None:
             batch = self.frame_sampler.sample(cfg.rays)
         else:
-            batch = self.sampler.sample(cfg.rays, usable_windows=self.usable_windows(n), crop=crop)
+            batch = self.sampler.sample(cfg.rays, usable_windows=self.usable_windows(n), crop=crop,
+                                        span_fraction=cfg.span_fraction)
         if (self.occupancy is not None and self.iteration >= cfg.occupancy_warmup
                 and (self.iteration - cfg.occupancy_warmup) % cfg.occupancy_every == 0):
             self.occupancy.update(self.field, threshold=cfg.occupancy_threshold)
