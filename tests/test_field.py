@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from evdnerf_ros.field import (DNeRFField, DynamicField, OccupancyGrid, PlanesField, WarpField,
+from evdnerf_ros.field import (DNeRFField, DynamicField, OccupancyGrid, PlanesField,
                                make_field, ray_box_intersect, render_image, render_rays)
 from evdnerf_ros.field.render import camera_rays
 from evdnerf_ros.geometry.camera import PinholeCamera, look_at
@@ -17,11 +17,6 @@ BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
 def small_planes(seed=0):
     return PlanesField(resolutions=(8, 16), time_resolution=6, features=8, hidden=16, seed=seed)
-
-
-def small_warp(seed=0):
-    return WarpField(resolutions=(8, 16), features=8, hidden=16, warp_resolution=4,
-                     warp_time_resolution=6, seed=seed)
 
 
 def small_dnerf():
@@ -58,8 +53,7 @@ class BallField(DynamicField):
         return self.forward(x, torch.zeros(x.shape[0], 1))
 
 
-@pytest.mark.parametrize("field", [small_planes(), small_warp(), small_dnerf()],
-                         ids=["planes", "warp", "dnerf"])
+@pytest.mark.parametrize("field", [small_planes(), small_dnerf()], ids=["planes", "dnerf"])
 def test_shapes_and_dtypes(field):
     x = torch.rand(17, 3) * 2 - 1
     t = torch.rand(17, 1)
@@ -85,15 +79,12 @@ def test_planes_independent_of_time_at_init():
         assert torch.equal(p.data, torch.ones_like(p))
 
 
-@pytest.mark.parametrize("field", [small_planes(), small_warp(), small_dnerf()],
-                         ids=["planes", "warp", "dnerf"])
+@pytest.mark.parametrize("field", [small_planes(), small_dnerf()], ids=["planes", "dnerf"])
 def test_static_view_reuse_bit_identical(field):
-    if isinstance(field, PlanesField):          # make the time dependence matter
+    if isinstance(field, PlanesField):          # make the time planes matter
         with torch.no_grad():
             for p in field.time_planes:
                 p.add_(0.3 * torch.randn_like(p))
-            if isinstance(field, WarpField):
-                field.warp_planes.add_(0.3 * torch.randn_like(field.warp_planes))
     x = torch.rand(40, 3) * 2 - 1
     t0, t1 = torch.full((40, 1), 0.25), torch.full((40, 1), 0.75)
     (da, ga), (db, gb) = field.evaluate_times(x, [t0, t1])
@@ -212,7 +203,7 @@ def test_planes_fit_a_tiny_target_image():
     assert l1 < 0.5 * l0
 
 
-@pytest.mark.parametrize("make", [small_planes, small_warp, small_dnerf], ids=["planes", "warp", "dnerf"])
+@pytest.mark.parametrize("make", [small_planes, small_dnerf], ids=["planes", "dnerf"])
 def test_forward_backward_extreme_inputs_finite(make):
     f = make()
     faces = torch.tensor([[-1.0, 0.0, 0.3], [1.0, 0.2, -0.1], [0.5, -1.0, 1.0],
@@ -233,52 +224,6 @@ def test_forward_backward_extreme_inputs_finite(make):
         assert torch.isfinite(r["grey"]).all()
     for p in f.parameters():
         assert p.grad is None or torch.isfinite(p.grad).all()
-
-
-def test_warp_starts_static_and_moves_its_canonical_content():
-    """At init the warp is zero (the field is its canonical triplane at every time); a warp
-    plane holding a constant offset shows the canonical content shifted by it; a static
-    triplane (``time_resolution`` 0) ignores time."""
-    f = small_warp()
-    assert torch.equal(f.warp_planes.data, torch.zeros_like(f.warp_planes))
-    x = torch.rand(30, 3) * 1.2 - 0.6
-    d0, g0 = f(x, torch.zeros(30, 1))
-    d1, g1 = f(x, torch.ones(30, 1))
-    assert torch.equal(d0, d1) and torch.equal(g0, g1)
-    shift = torch.tensor([0.1, -0.2, 0.3])
-    with torch.no_grad():
-        f.warp_planes[0] = shift.view(3, 1, 1)         # the xt plane: constant in x and t
-    d2, g2 = f(x, torch.full((30, 1), 0.4))
-    ds, gs = f.decode_static(f.space_features(x + shift))
-    assert torch.allclose(d2, ds, atol=1e-6) and torch.allclose(g2, gs, atol=1e-6)
-    static = PlanesField(resolutions=(4,), time_resolution=0, features=4, hidden=8)
-    assert len(static.time_planes) == 0
-    assert torch.equal(static(x, torch.zeros(30, 1))[0], static(x, torch.ones(30, 1))[0])
-
-
-def test_warp_learns_a_translation_that_planes_must_fade():
-    """A bright slab that slides along x over time, seen by one camera: a few hundred steps
-    on the warp's renders of t = 0 and t = 1 fit both, moving the slab."""
-    torch.manual_seed(0)
-    f = small_warp()
-    cam = PinholeCamera.from_fov(16, 4, 40.0)
-    T = look_at((0.0, -4.0, 0.0), (0.0, 0.0, 0.0))
-    o, d = camera_rays(cam, T)
-    col = torch.arange(16.0).repeat(4)
-    targets = {0.0: (0.2 + 0.6 * ((col >= 4) & (col < 8)).float()),
-               1.0: (0.2 + 0.6 * ((col >= 8) & (col < 12)).float())}
-    opt = torch.optim.Adam(f.parameters(), lr=0.03)
-    for i in range(300):
-        opt.zero_grad()
-        loss = sum(((render_rays(f, o, d, t, BOX, 16)["grey"] - g) ** 2).mean()
-                   for t, g in targets.items())
-        loss.backward()
-        opt.step()
-    with torch.no_grad():
-        for t, g in targets.items():
-            err = (render_rays(f, o, d, t, BOX, 16)["grey"] - g).abs().mean()
-            assert float(err) < 0.06, (t, float(err))
-    assert float(f.warp_planes.detach().abs().max()) > 0.05             # time is carried by the warp
 
 
 def test_normalized_time_from_int64_differences():

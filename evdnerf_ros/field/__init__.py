@@ -3,8 +3,6 @@
 - ``DynamicField`` (base): ``forward(x, t) -> (density, grey)`` plus the static-view reuse
   pair ``space_features(x)`` / ``decode(features, t)``.
 - ``PlanesField`` (``planes``, default): K-Planes/HexPlane-style factorised 4D field.
-- ``WarpField`` (``warp``): a static canonical triplane seen through a warp of space-time
-  planes (D-NeRF's deformation on grids).
 - ``DNeRFField`` (``dnerf``): the paper's deformation + canonical MLPs.
 - ``render``: rays, ray-box intersection, sampling, volume rendering.
 - ``FieldRenderer``: a field as a ``evdnerf_ros.renderer.Renderer`` (``renderer.py``).
@@ -21,9 +19,8 @@ from .planes import PlanesField
 from .render import (camera_rays, normalize_points, ray_box_intersect, render_image,
                      render_rays, sample_along_rays, volume_weights)
 from .renderer import FieldRenderer
-from .warp import WarpField
 
-BACKBONES = {"planes": PlanesField, "warp": WarpField, "dnerf": DNeRFField}
+BACKBONES = {"planes": PlanesField, "dnerf": DNeRFField}
 
 
 def make_field(name: str = "planes", *, background_cells: int = 0, background_grey: float = 0.5,
@@ -42,7 +39,7 @@ def make_field(name: str = "planes", *, background_cells: int = 0, background_gr
     return field
 
 
-__all__ = ["BackgroundMap", "DynamicField", "PlanesField", "WarpField", "DNeRFField", "OccupancyGrid", "DynamicRegion", "FieldRenderer",
+__all__ = ["BackgroundMap", "DynamicField", "PlanesField", "DNeRFField", "OccupancyGrid", "DynamicRegion", "FieldRenderer",
            "event_footprint", "BACKBONES",
            "make_field", "normalized_time", "camera_rays", "normalize_points", "ray_box_intersect",
            "render_image", "render_rays", "sample_along_rays", "volume_weights",

@@ -3,8 +3,7 @@
 Per scale s (space resolution R_s, time resolution T):
 - 3 space planes  (xy, xz, yz), each (F, R_s, R_s), initialised uniform(a, b);
 - 3 space-time planes (xt, yt, zt), each (F, T, R_s), initialised to **1**, so a point
-  is static until the data says otherwise (and the field is independent of t at init);
-  ``time_resolution`` 0 leaves them out (a static triplane, the canonical space of ``warp``).
+  is static until the data says otherwise (and the field is independent of t at init).
 Features are bilinear ``grid_sample`` lookups (``align_corners=True``: -1 and +1 are the
 outermost texel centres), multiplied (Hadamard product) across the six planes, and
 concatenated across scales.  A tiny MLP decodes density (softplus or truncated exp) and
@@ -69,9 +68,9 @@ class PlanesField(DynamicField):
         for r in self.resolutions:
             sp = torch.rand(3, self.features, r, r, generator=gen) * (b - a) + a
             self.space_planes.append(nn.Parameter(sp))
-            if self.time_resolution:         # rows = time, columns = the space axis
-                self.time_planes.append(nn.Parameter(
-                    torch.ones(3, self.features, self.time_resolution, r)))
+            # rows = time, columns = the space axis
+            self.time_planes.append(nn.Parameter(
+                torch.ones(3, self.features, self.time_resolution, r)))
         layers: list[nn.Module] = []
         d = self.features * len(self.resolutions)
         for _ in range(int(hidden_layers)):
@@ -104,8 +103,6 @@ class PlanesField(DynamicField):
         return [x, feats]
 
     def decode(self, features, t: torch.Tensor):
-        if not self.time_resolution:
-            return self.decode_static(features)
         x, feats = features
         n = x.shape[0]
         tt = (t.to(torch.float32).reshape(-1, 1).expand(n, 1)) * 2.0 - 1.0

@@ -80,16 +80,11 @@ MAX_BOX = 1e6
 #: choices; "int?" allows null.  Keys of the backbone's constructor that are not listed
 #: here are passed through unchecked.
 FIELD_KEYS = {
-    "planes": {"resolutions": ("list", 1, 8192, 16), "time_resolution": (0, 8192, "int"),
+    "planes": {"resolutions": ("list", 1, 8192, 16), "time_resolution": (1, 8192, "int"),
                "features": (1, 4096, "int"), "hidden": (1, 65536, "int"),
                "hidden_layers": (0, 64, "int"), "density_activation": ("softplus", "trunc_exp"),
                "density_bias": (-1e3, 1e3, "float"), "init_range": ("pair", -1e3, 1e3),
                "seed": (0, 2 ** 63 - 1, "int?")},
-    "warp": {"resolutions": ("list", 1, 8192, 16), "features": (1, 4096, "int"),
-             "hidden": (1, 65536, "int"), "hidden_layers": (0, 64, "int"),
-             "density_activation": ("softplus", "trunc_exp"), "density_bias": (-1e3, 1e3, "float"),
-             "init_range": ("pair", -1e3, 1e3), "warp_resolution": (2, 8192, "int"),
-             "warp_time_resolution": (2, 8192, "int"), "seed": (0, 2 ** 63 - 1, "int?")},
     "dnerf": {"depth": (1, 64, "int"), "width": (1, 65536, "int"), "skip": (0, 64, "int?"),
               "pe_x": (0, 32, "int"), "pe_t": (0, 32, "int"),
               "canonical_depth": (1, 64, "int?"), "canonical_width": (1, 65536, "int?"),
@@ -220,12 +215,9 @@ def _field_sizes(cfg) -> dict:
 def field_parameters(cfg) -> int:
     """Number of trainable parameters of the configured field (closed form)."""
     f = _field_sizes(cfg)
-    if cfg.backbone in ("planes", "warp"):
-        res, feat = [int(r) for r in f["resolutions"]], int(f["features"])
-        t = int(f.get("time_resolution", 0))
+    if cfg.backbone == "planes":
+        res, feat, t = [int(r) for r in f["resolutions"]], int(f["features"]), int(f["time_resolution"])
         n = sum(3 * feat * (r * r + t * r) for r in res)
-        if cfg.backbone == "warp":
-            n += 9 * int(f["warp_time_resolution"]) * int(f["warp_resolution"])
         d, hidden = feat * len(res), int(f["hidden"])
         for _ in range(int(f["hidden_layers"])):
             n += d * hidden + hidden
@@ -255,7 +247,7 @@ def bytes_per_sample(cfg) -> int:
     Calibrated on CPU: planes (default sizes) ~5.0 KB measured, 5.6 KB estimated; dnerf
     8 x 256 ~43 KB measured, 49 KB estimated."""
     f = _field_sizes(cfg)
-    if cfg.backbone in ("planes", "warp"):
+    if cfg.backbone == "planes":
         scales, feat = len(f["resolutions"]), int(f["features"])
         hidden = int(f["hidden"]) * max(1, int(f["hidden_layers"]))
         return 4 * (20 * scales * feat + 6 * hidden + 64)

@@ -69,7 +69,7 @@ def plane_regularisers(field, cfg: TrainConfig) -> torch.Tensor | None:
     if not hasattr(field, "space_planes") or not (cfg.tv_weight or cfg.time_smooth_weight
                                                   or cfg.time_l1_weight):
         return None
-    total = torch.zeros((), device=field.space_planes[0].device)
+    total = torch.zeros((), device=field.time_planes[0].device)
     if cfg.tv_weight:
         for p in field.space_planes:
             total = total + cfg.tv_weight * (((p[..., 1:, :] - p[..., :-1, :]) ** 2).mean()
