@@ -169,12 +169,17 @@ LEVERS = {"plain (every ray, every sample)": {"leave_out": False, "reuse_static"
           "baked 32": {"bake_resolution": 32}, "baked 64": {"bake_resolution": 64},
           "baked 96": {"bake_resolution": 96},
           "static reuse, tolerance 0.5 C": {"tolerance_c": 0.5},
-          "static reuse, tolerance 0.02 C": {"tolerance_c": 0.02}}
+          "static reuse, tolerance 0.02 C": {"tolerance_c": 0.02},
+          "occupancy 32": {"occupancy_resolution": 32}, "occupancy 64": {"occupancy_resolution": 64},
+          "baked 64 + occupancy 32": {"bake_resolution": 64, "occupancy_resolution": 32}}
+#: levers of the RTF-against-resolution sweep (static camera)
+RESOLUTION_LEVERS = ("static reuse (default)", "occupancy 32", "baked 64")
 
 
-def bench_published(work: Path, quick: bool, threads: int) -> dict:
+def bench_published(work: Path, quick: bool, threads: int, levers=None) -> dict:
     """Published events against the simulator's along the same path (eval.published), for each
-    publisher lever (error against run time) and against resolution (RTF)."""
+    publisher lever (error against run time; ``levers``: names to run, default all) and against
+    resolution (RTF)."""
     import torch
 
     from evdnerf_ros.eval.published import published_vs_true
@@ -194,7 +199,7 @@ def bench_published(work: Path, quick: bool, threads: int) -> dict:
     for path in ("static", "orbit"):
         ref, rows = None, []
         for name, params in LEVERS.items():
-            if path == "orbit" and ("tolerance" in name):
+            if (path == "orbit" and ("tolerance" in name)) or (levers and name not in levers):
                 continue
             r = one(path, params, ref)
             ref = r.pop("reference")
@@ -202,7 +207,7 @@ def bench_published(work: Path, quick: bool, threads: int) -> dict:
                          "margin_closed", "counts", "first_events", "publisher", "true_publisher")}})
         out["levers"][path] = rows
     for size in ((32, 32), (64, 64)) if quick else ((32, 32), (64, 64), (128, 128)):
-        for name in ("static reuse (default)", "baked 64"):
+        for name in RESOLUTION_LEVERS:
             r = one("static", LEVERS[name], None, resolution=size)
             r.pop("reference")
             out["resolution"].append({"width": size[0], "height": size[1], "lever": name,
@@ -215,14 +220,13 @@ def make_field_run(run_dir, *, half_empty=True):
     """A randomly initialised planes field saved as a run (checkpoint with box and occupancy)."""
     import torch
 
-    from evdnerf_ros.field import make_field
     from evdnerf_ros.train.checkpoint import save_checkpoint
-    from evdnerf_ros.train.config import TrainConfig
+    from evdnerf_ros.train.config import TrainConfig, field_from_config
     from evdnerf_ros.train.trainer import CHECKPOINT_NAME
 
     cfg = TrainConfig()
     torch.manual_seed(0)
-    field = make_field(cfg.backbone, **cfg.field)
+    field = field_from_config(cfg)
     occ = torch.zeros((16, 16, 16), dtype=torch.bool)
     occ[4:12, 4:12, 4:12] = True if half_empty else occ[4:12, 4:12, 4:12]
     Path(run_dir).mkdir(parents=True, exist_ok=True)
@@ -353,6 +357,7 @@ def main(argv=None):
     ap.add_argument("--work", default="", help="folder for the published-vs-true run (kept; default: a temp folder)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the published-vs-true part (1: shared "
                     "machine)")
+    ap.add_argument("--levers", default="", help="published part: comma-separated lever names (default: all)")
     args = ap.parse_args(argv)
     cpus = args.dds_cpus.split(",") if args.dds_cpus else None
     parts = args.only or ["resolution", "tolerance", "leave_out", "dds", "published"]
@@ -371,7 +376,8 @@ def main(argv=None):
         result["dds_throughput"] = bench_dds(args.quick, cpus)
     if "published" in parts:
         with tempfile.TemporaryDirectory() as tmp:
-            result["published_vs_true"] = bench_published(Path(args.work or tmp), args.quick, args.threads)
+            result["published_vs_true"] = bench_published(Path(args.work or tmp), args.quick, args.threads,
+                                                          [n for n in args.levers.split(",") if n] or None)
     write_results(args.out, name, result, plot)
 
 
@@ -393,7 +399,7 @@ def plot(result, path):
         ax[4].set_ylabel("events PSNR vs true events (dB)")
         ax[4].set_title("published vs true (dashed: all-zero floor, dotted: true render)")
         ax[4].legend(fontsize=7)
-        for lever, mk in (("static reuse (default)", "o-"), ("baked 64", "s--")):
+        for lever, mk in zip(dict.fromkeys(r["lever"] for r in pv["resolution"]), ("o-", "s--", "^-.", "d:")):
             rows = [r for r in pv["resolution"] if r["lever"] == lever]
             ax[5].plot([f"{r['width']}x{r['height']}" for r in rows], [r["rtf"] for r in rows], mk, label=lever)
         ax[5].axhline(0.5, color="k", ls=":", lw=1)

@@ -48,8 +48,21 @@ def test_bad_sizes_are_refused():
     with pytest.raises(InputError, match="background_cells"):
         TrainConfig(background_cells=4, background=0.25)
     with pytest.raises(InputError, match="background.*strictly between 0 and 1"):
-        TrainConfig(background_cells=64)                       # background 0: no logit
+        TrainConfig(background_cells=64, background=0.0)       # background 0: no logit
     assert TrainConfig(background_cells=64, background=0.25).background_cells == 64
+
+
+def test_a_run_saved_before_the_map_and_spans_loads_as_it_was():
+    """A checkpoint's config written before background_cells and span_fraction existed (with
+    the old constant background 0) keeps that behaviour; a new config gets today's defaults."""
+    old = {k: v for k, v in TrainConfig().to_dict().items() if k not in ("background_cells", "span_fraction")}
+    old["background"] = 0.0
+    cfg = TrainConfig.from_dict(old, saved=True)
+    assert cfg.background_cells == 0 and cfg.span_fraction == 0.0 and cfg.background == 0.0
+    assert getattr(field_from_config(cfg), "background_map", None) is None
+    with pytest.raises(InputError, match="background"):
+        TrainConfig.from_dict(old)                             # read as a new config: refused
+    assert TrainConfig().background_cells > 0 and TrainConfig().span_fraction > 0
 
 
 def test_rays_missing_the_box_see_the_map_and_it_learns():

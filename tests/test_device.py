@@ -41,9 +41,8 @@ def test_cuda_requested_but_absent_names_the_fix(no_cuda, name):
 
 
 def _tiny_run(tmp_path):
-    from evdnerf_ros.field import make_field
     from evdnerf_ros.train.checkpoint import save_checkpoint
-    from evdnerf_ros.train.config import TrainConfig
+    from evdnerf_ros.train.config import TrainConfig, field_from_config
 
     cfg = TrainConfig()
     torch.manual_seed(3)
@@ -51,7 +50,7 @@ def _tiny_run(tmp_path):
     dyn[3:5, 3:5, 2:6] = True
     run = tmp_path / "run"
     run.mkdir()
-    save_checkpoint(run / "checkpoint.pt", field=make_field(cfg.backbone, **cfg.field), optimizer=None,
+    save_checkpoint(run / "checkpoint.pt", field=field_from_config(cfg), optimizer=None,
                     iteration=0, config=cfg.to_dict(), backbone=cfg.backbone, rng={},
                     box=[[-1, -1, -1], [1, 1, 1]], extra={"dynamic": dyn})
     return run

@@ -238,3 +238,21 @@ def test_normalized_time_from_int64_differences():
 def test_dynamic_field_is_abstract():
     with pytest.raises(TypeError):
         DynamicField()
+
+
+def test_planes_decode_at_one_time_equals_decode():
+    """The publisher's playback path (rows blended at t, then gathered at precomputed columns)
+    gives decode's density and grey to float rounding, at texel times, between them, at 0
+    and 1, and for points on the box faces."""
+    f = small_planes().eval()
+    with torch.no_grad():
+        for p in f.time_planes:
+            p.add_(0.3 * torch.randn_like(p, generator=torch.Generator().manual_seed(1)))
+    x = torch.rand(300, 3, generator=torch.Generator().manual_seed(2)) * 2 - 1
+    x[:4] = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], [1.0, -1.0, 0.3], [0.0, 0.0, 0.0]])
+    with torch.no_grad():
+        sf = f.space_features(x)
+        pf = f.playback_features(sf)
+        for t in (0.0, 0.2, 1 / 3, 0.5, 0.999, 1.0):
+            (da, ga), (db, gb) = f.decode(sf, torch.full((300, 1), t)), f.decode_at(pf, t)
+            assert float((da - db).abs().max()) < 1e-5 and float((ga - gb).abs().max()) < 1e-6

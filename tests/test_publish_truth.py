@@ -69,13 +69,12 @@ def _changing_run(tmp_path):
     """A planes field whose time planes vary (random), with a dynamic region and an occupancy grid."""
     import torch
 
-    from evdnerf_ros.field import make_field
     from evdnerf_ros.train.checkpoint import save_checkpoint
-    from evdnerf_ros.train.config import TrainConfig
+    from evdnerf_ros.train.config import TrainConfig, field_from_config
 
     cfg = TrainConfig()
     torch.manual_seed(5)
-    field = make_field(cfg.backbone, **cfg.field)
+    field = field_from_config(cfg)
     with torch.no_grad():
         for tp in field.time_planes:
             tp.uniform_(0.0, 3.0)

@@ -19,14 +19,15 @@ CAM = PinholeCamera.from_fov(24, 18, 50.0)
 
 
 def _field_run(tmp_path):
-    """A run folder holding an untrained planes field (static in time) and its records."""
-    from evdnerf_ros.field import make_field
+    """A run folder holding an untrained planes field (static in time) and its records; a black
+    constant background, so the random field's fog shows with contrast to a circling camera."""
     from evdnerf_ros.train.checkpoint import save_checkpoint
-    from evdnerf_ros.train.config import TrainConfig
+    from evdnerf_ros.train.config import TrainConfig, field_from_config
 
-    cfg = TrainConfig(n_samples=16, field=dict(resolutions=[8], time_resolution=4, features=4, hidden=8))
+    cfg = TrainConfig(n_samples=16, field=dict(resolutions=[8], time_resolution=4, features=4, hidden=8),
+                      background_cells=0, background=0.0)
     torch.manual_seed(3)
-    field = make_field(cfg.backbone, **cfg.field)
+    field = field_from_config(cfg)
     run = tmp_path / "run"
     run.mkdir()
     save_checkpoint(run / "checkpoint.pt", field=field, optimizer=None, iteration=7,

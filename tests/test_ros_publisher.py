@@ -294,17 +294,16 @@ def test_evdnerf_publish_cli(tmp_path, capsys):
 def test_field_source_occupancy_mask_saves_rays_not_pixels(tmp_path):
     import torch
 
-    from evdnerf_ros.field import make_field
     from evdnerf_ros.nodes.sources import FieldSource
     from evdnerf_ros.train.checkpoint import save_checkpoint
-    from evdnerf_ros.train.config import TrainConfig
+    from evdnerf_ros.train.config import TrainConfig, field_from_config
 
     cfg = TrainConfig()
     torch.manual_seed(1)
     occ = torch.zeros((8, 8, 8), dtype=torch.bool)
     occ[3:5, 3:5, 3:5] = True                         # a small occupied core: most rays cross nothing
     (tmp_path / "run").mkdir()
-    save_checkpoint(tmp_path / "run" / "checkpoint.pt", field=make_field(cfg.backbone, **cfg.field), optimizer=None,
+    save_checkpoint(tmp_path / "run" / "checkpoint.pt", field=field_from_config(cfg), optimizer=None,
                     iteration=0, config=cfg.to_dict(), backbone=cfg.backbone, rng={},
                     box=[[-1, -1, -1], [1, 1, 1]], extra={"occupied": occ})
     cam = PinholeCamera.from_fov(20, 16, 50.0)
@@ -341,10 +340,9 @@ def test_a_trained_run_without_trajectory_orbits_its_training_views(tmp_path):
     """`publish --run RUN` alone: the camera the run was trained with, once round its training views."""
     import torch
 
-    from evdnerf_ros.field import make_field
     from evdnerf_ros.io.messages import intrinsics_from_camera_info
     from evdnerf_ros.train.checkpoint import save_checkpoint
-    from evdnerf_ros.train.config import TrainConfig
+    from evdnerf_ros.train.config import TrainConfig, field_from_config
     from evdnerf_ros.train.run import TrainedRun
 
     cfg = TrainConfig()
@@ -355,7 +353,7 @@ def test_a_trained_run_without_trajectory_orbits_its_training_views(tmp_path):
                                      "camera": [14, 10, 12.0, 12.0, 6.5, 4.5], "ring": ring}),
                             ("old", {"time_range_ns": [0, 40_000_000], "thresholds": [0.2, 0.2]})):
         (tmp_path / name).mkdir()
-        save_checkpoint(tmp_path / name / "checkpoint.pt", field=make_field(cfg.backbone, **cfg.field),
+        save_checkpoint(tmp_path / name / "checkpoint.pt", field=field_from_config(cfg),
                         optimizer=None, iteration=0, config=cfg.to_dict(), backbone=cfg.backbone, rng={},
                         box=[[-1, -1, -1], [1, 1, 1]], extra={"train_set": train_set})
     t, T = TrainedRun.load(tmp_path / "run").orbit(40_000_000)

@@ -12,7 +12,7 @@ import torch
 from evdnerf_ros.errors import InputError
 from evdnerf_ros.field import DynamicRegion, OccupancyGrid, make_field
 from evdnerf_ros.train.checkpoint import CheckpointError, FORMAT, FORMAT_VERSION, header, save_checkpoint
-from evdnerf_ros.train.config import TrainConfig
+from evdnerf_ros.train.config import TrainConfig, field_from_config
 from evdnerf_ros.train.run import TrainedRun
 from evdnerf_ros import __version__
 
@@ -22,7 +22,7 @@ FIELD = dict(resolutions=[8], time_resolution=4, features=4, hidden=8)
 def _save(run, *, cfg=None, field=None, extra=None, box=((-1, -1, -1), (1, 1, 1)), iteration=3):
     cfg = cfg or TrainConfig(field=FIELD).to_dict()
     torch.manual_seed(0)
-    field = field if field is not None else make_field("planes", **FIELD)
+    field = field if field is not None else field_from_config(TrainConfig(field=FIELD))
     run.mkdir(exist_ok=True)
     save_checkpoint(run / "checkpoint.pt", field=field, optimizer=None, iteration=iteration, config=cfg,
                     backbone="planes", rng={}, box=[list(b) for b in box], extra=extra)
@@ -103,7 +103,7 @@ def test_damaged_or_foreign_checkpoints(tmp_path):
 def _base(**over):
     d = {"format": FORMAT, "format_version": FORMAT_VERSION, "software_version": __version__,
          "iteration": 1, "config": TrainConfig(field=FIELD).to_dict(), "backbone": "planes",
-         "field": make_field("planes", **FIELD).state_dict(), "optimizer": None, "rng": {},
+         "field": field_from_config(TrainConfig(field=FIELD)).state_dict(), "optimizer": None, "rng": {},
          "box": [[-1, -1, -1], [1, 1, 1]], "extra": {}}
     d.update(over)
     return {k: v for k, v in d.items() if v is not KeyError}

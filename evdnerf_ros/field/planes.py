@@ -114,6 +114,40 @@ class PlanesField(DynamicField):
             out.append(sf * (f[0] * f[1] * f[2]))
         return self._head(torch.cat(out, dim=1))
 
+    # ----- playback at one time for many points (the publisher's renderer)
+    def playback_features(self, features):
+        """``space_features(x)`` plus, per scale and space axis, the two columns of the time
+        planes each point falls between and its weight: what ``decode_at`` needs, fixed while
+        the points are (a static camera's samples)."""
+        x, feats = features
+        columns = []
+        for planes in self.time_planes:
+            r = planes.shape[-1]
+            u = (x.clamp(-1.0, 1.0) + 1.0) * (0.5 * (r - 1))               # (N, 3) in [0, r - 1]
+            j0 = u.floor().clamp(0, max(r - 2, 0)).long()
+            columns.append((j0.T.contiguous(), (j0 + 1).clamp(max=r - 1).T.contiguous(),
+                            (u - j0).T.contiguous().unsqueeze(-1)))
+        return [x, feats, columns]
+
+    def decode_at(self, playback, t: float):
+        """``decode`` of every point at one normalised time ``t`` (equal to float rounding):
+        each time plane is first blended to its row at ``t`` (F x R), then read at the points'
+        precomputed columns, two row gathers per axis instead of a bilinear lookup."""
+        x, feats, columns = playback
+        rows = self.time_resolution - 1
+        ti = min(max(float(t), 0.0), 1.0) * rows
+        i0 = min(int(ti), max(rows - 1, 0))
+        i1 = min(i0 + 1, rows)
+        w = ti - i0
+        out = []
+        for planes, sf, (j0, j1, a) in zip(self.time_planes, feats, columns):
+            row = (planes[:, :, i0, :] * (1.0 - w) + planes[:, :, i1, :] * w).transpose(1, 2)  # (3, R, F)
+            prod = sf
+            for i in range(3):
+                prod = prod * torch.lerp(row[i][j0[i]], row[i][j1[i]], a[i])
+            out.append(prod)
+        return self._head(torch.cat(out, dim=1))
+
     def decode_static(self, features):
         """Time factors taken as 1 (the planes' initial value: a point that never changes)."""
         return self._head(torch.cat(features[1], dim=1))

@@ -26,6 +26,9 @@ rounding of batched matrix products, ~1e-7; the tests hold them to 1e-6):
   then what a plain render costs).
 - a field with a learned background (``field.background_map``) gives each ray the grey of
   its direction where it leaves the box, computed with the plan (once per pose).
+- a ``planes`` field plays each time back through ``PlanesField.decode_at`` (its time planes
+  blended to the row at that time once, then read at each sample's precomputed columns; equal
+  to ``decode`` up to float rounding).
 - ``field`` may also be a :class:`~evdnerf_ros.field.baked.BakedField` (the ``bake``
   setting of :meth:`TrainedRun.renderer`): an explicit grid played back by interpolation, an
   approximation whose error the publish benchmark measures.
@@ -189,7 +192,11 @@ class FieldRenderer(CameraRenderer):
         dmask = is_dyn.reshape(m, S)[dy].reshape(-1)
         p.dyn_idx = torch.nonzero(dmask).squeeze(1)
         xd = x.reshape(m, S, 3)[dy].reshape(-1, 3)[p.dyn_idx]
-        p.feats = self.field.space_features(xd) if p.dyn_idx.numel() else None
+        p.feats = None
+        if p.dyn_idx.numel():
+            p.feats = self.field.space_features(xd)
+            if hasattr(self.field, "playback_features"):     # planes: time rows read by gathers
+                p.feats = self.field.playback_features(p.feats)
         p.nbytes = (_feature_bytes(p.feats) + 4 * (2 * p.base_sigma.numel() + 2 * p.delta.numel())
                     + 8 * (p.dyn_idx.numel() + p.dyn_rays.numel() + p.static_rays.numel()) + 4 * p.static_grey.numel())
         self.samples_evaluated += p.n_static_samples
@@ -216,8 +223,10 @@ class FieldRenderer(CameraRenderer):
                     continue
                 sigma, grey = p.base_sigma, p.base_grey
                 if p.dyn_idx.numel():
-                    t_col = as_time_column(tn, p.dyn_idx.numel(), self.device)
-                    dens, g = self.field.decode(p.feats, t_col)
+                    if hasattr(self.field, "decode_at"):
+                        dens, g = self.field.decode_at(p.feats, tn)
+                    else:
+                        dens, g = self.field.decode(p.feats, as_time_column(tn, p.dyn_idx.numel(), self.device))
                     sigma = sigma.index_put((p.dyn_idx,), dens.float())
                     grey = grey.index_put((p.dyn_idx,), g.float())
                     self.samples_evaluated += int(p.dyn_idx.numel())

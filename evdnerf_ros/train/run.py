@@ -56,7 +56,7 @@ class TrainedRun:
             raise CheckpointError(f"{where}: holds no {', '.join(missing)}: damaged or not written by "
                                   f"`evdnerf train`; {RETRAIN}")
         self.checkpoint = data
-        self.config = TrainConfig.from_dict(data["config"], source=f"{where} (config)")
+        self.config = TrainConfig.from_dict(data["config"], source=f"{where} (config)", saved=True)
         it = data["iteration"]
         if isinstance(it, bool) or not isinstance(it, (int, np.integer)) or it < 0:
             raise CheckpointError(f"{where}: iteration {it!r} is not a count; damaged checkpoint; {RETRAIN}")
