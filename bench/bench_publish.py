@@ -176,23 +176,26 @@ LEVERS = {"plain (every ray, every sample)": {"leave_out": False, "reuse_static"
 RESOLUTION_LEVERS = ("static reuse (default)", "occupancy 32", "baked 64")
 
 
-def bench_published(work: Path, quick: bool, threads: int, levers=None) -> dict:
+def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: float = 0.0) -> dict:
     """Published events against the simulator's along the same path (eval.published), for each
     publisher lever (error against run time; ``levers``: names to run, default all) and against
-    resolution (RTF)."""
+    resolution (RTF); ``span_s``: seconds of events per publish (0: 0.1 quick, else 0.3)."""
     import torch
 
     from evdnerf_ros.eval.published import published_vs_true
 
     torch.set_num_threads(threads)
     h5, run = trained_fork_run(work, minutes=1.0 if quick else 2.0)
-    span = 100_000_000 if quick else 300_000_000
+    span = int(round(span_s * 1e9)) or (100_000_000 if quick else 300_000_000)
     windows = 16
-    out = {"threads": threads, "span_s": span / 1e9, "windows": windows, "run": "fork 64x64, 8 + 2 views, "
-           f"{'1' if quick else '2'} min of training", "levers": {}, "resolution": []}
+    # a moving camera re-plans at every pose (seconds per render on a CPU): at most 0.1 s of it
+    spans = {"static": span, "orbit": min(span, 100_000_000)}
+    out = {"threads": threads, "span_s": span / 1e9, "orbit_span_s": spans["orbit"] / 1e9, "windows": windows,
+           "run": f"fork 64x64, 8 + 2 views, {'1' if quick else '2'} min of training", "levers": {},
+           "resolution": []}
 
     def one(path, params, ref, **kw):
-        r = published_vs_true(run, h5, n_windows=windows, static=path == "static", duration_ns=span,
+        r = published_vs_true(run, h5, n_windows=windows, static=path == "static", duration_ns=spans[path],
                               publisher=params, true_reference=ref, log=lambda m: print(m, flush=True), **kw)
         return r
 
@@ -358,6 +361,8 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the published-vs-true part (1: shared "
                     "machine)")
     ap.add_argument("--levers", default="", help="published part: comma-separated lever names (default: all)")
+    ap.add_argument("--span", type=float, default=0.0, help="published part: seconds of events per publish "
+                    "(0: 0.1 with --quick, else 0.3)")
     args = ap.parse_args(argv)
     cpus = args.dds_cpus.split(",") if args.dds_cpus else None
     parts = args.only or ["resolution", "tolerance", "leave_out", "dds", "published"]
@@ -377,7 +382,8 @@ def main(argv=None):
     if "published" in parts:
         with tempfile.TemporaryDirectory() as tmp:
             result["published_vs_true"] = bench_published(Path(args.work or tmp), args.quick, args.threads,
-                                                          [n for n in args.levers.split(",") if n] or None)
+                                                          [n for n in args.levers.split(",") if n] or None,
+                                                          args.span)
     write_results(args.out, name, result, plot)
 
 

@@ -36,7 +36,10 @@ BASE = {"eval_every": 100, "checkpoint_every": 0, "log_every": 100}
 #: lever name -> config changes against BASE.
 LEVERS = {
     "baseline": {},
-    "before spans and background map": {"span_fraction": 0.0, "background_cells": 0, "background": 0.0},
+    "before spans + background map + empty prior": {"span_fraction": 0.0, "background_cells": 0,
+                                                      "background": 0.0, "empty_weight": 0.0},
+    "no empty prior": {"empty_weight": 0.0},
+    "empty-prior-1": {"empty_weight": 1.0},
     "no spans": {"span_fraction": 0.0},
     "no background map": {"background_cells": 0},
     "spans-0.8": {"span_fraction": 0.8},

@@ -53,12 +53,14 @@ def test_bad_sizes_are_refused():
 
 
 def test_a_run_saved_before_the_map_and_spans_loads_as_it_was():
-    """A checkpoint's config written before background_cells and span_fraction existed (with
+    """A checkpoint's config written before background_cells, span_fraction and empty_weight existed (with
     the old constant background 0) keeps that behaviour; a new config gets today's defaults."""
-    old = {k: v for k, v in TrainConfig().to_dict().items() if k not in ("background_cells", "span_fraction")}
+    old = {k: v for k, v in TrainConfig().to_dict().items()
+           if k not in ("background_cells", "span_fraction", "empty_weight")}
     old["background"] = 0.0
     cfg = TrainConfig.from_dict(old, saved=True)
     assert cfg.background_cells == 0 and cfg.span_fraction == 0.0 and cfg.background == 0.0
+    assert cfg.empty_weight == 0.0
     assert getattr(field_from_config(cfg), "background_map", None) is None
     with pytest.raises(InputError, match="background"):
         TrainConfig.from_dict(old)                             # read as a new config: refused

@@ -172,6 +172,33 @@ def test_tiny_run_loss_decreases(train_set):
     assert tr.skipped == 0
 
 
+def test_empty_prior_hand_computed_and_it_clears_the_fog(train_set):
+    """The sparsity prior is the mean opacity of one sample's length (constant density sigma:
+    1 - exp(-sigma * diagonal / n_samples)); with it the trained field's density at random
+    points of the box ends lower than without."""
+    from evdnerf_ros.field import DynamicField
+
+    class Constant(DynamicField):
+        def forward(self, x, t):
+            return torch.full((x.shape[0],), 2.0), torch.full((x.shape[0],), 0.5)
+
+        def decode_static(self, x):
+            return self.forward(x, None)
+
+    tr = Trainer(train_set, small_config(empty_weight=1.0, empty_points=64), iters=1, log=lambda *_: None)
+    tr.field = Constant()
+    step = float(np.linalg.norm(tr.box[1] - tr.box[0])) / 24
+    assert float(tr.empty_prior()) == pytest.approx(1 - np.exp(-2.0 * step), rel=1e-5)
+    dens = {}
+    x = torch.rand(2000, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    for w in (0.0, 1.0):
+        tr = Trainer(train_set, small_config(empty_weight=w), iters=40, log=lambda *_: None)
+        tr.train()
+        with torch.no_grad():
+            dens[w] = float(tr.field.decode_static(tr.field.space_features(x))[0].mean())
+    assert dens[1.0] < 0.5 * dens[0.0], dens
+
+
 def test_resume_equals_uninterrupted_and_metrics(train_h5, train_set, tmp_path):
     cfg = small_config(rays=64, windows=[4, 8], window_switch=[0.5], eval_every=5,
                        time_curriculum=0.3, lr_warmup_iters=8, crop_warmup_iters=5,

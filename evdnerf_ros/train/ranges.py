@@ -54,6 +54,8 @@ NUMBERS = {
     "tv_weight": (0.0, 1e9, "float", False),
     "time_smooth_weight": (0.0, 1e9, "float", False),
     "time_l1_weight": (0.0, 1e9, "float", False),
+    "empty_weight": (0.0, 1e9, "float", False),
+    "empty_points": (1, 1 << 24, "int", False),
     "threshold_lr": (0.0, 1e3, "float", True),
     "lr": (0.0, 1e3, "float", True),
     "lr_warmup_iters": (0, BIG, "int", False),

@@ -217,7 +217,18 @@ class Trainer:
         reg = plane_regularisers(self.field, cfg)
         if reg is not None:
             loss = loss + reg
+        if cfg.empty_weight:
+            loss = loss + cfg.empty_weight * self.empty_prior()
         return loss
+
+    def empty_prior(self) -> torch.Tensor:
+        """Mean opacity over one sample's length (box diagonal / n_samples) of the static field
+        at ``empty_points`` uniform random points of the box (``empty_weight``)."""
+        cfg = self.cfg
+        x = torch.rand(cfg.empty_points, 3, generator=self.gen, device=self.device) * 2.0 - 1.0
+        density, _ = self.field.decode_static(self.field.space_features(x))
+        step = float(np.linalg.norm(self.box[1] - self.box[0])) / cfg.n_samples
+        return (-torch.expm1(-density * step)).mean()
 
     def step(self) -> float | None:
         """One iteration; returns the loss, or None when the step was skipped."""
