@@ -169,11 +169,9 @@ LEVERS = {"plain (every ray, every sample)": {"leave_out": False, "reuse_static"
           "baked 32": {"bake_resolution": 32}, "baked 64": {"bake_resolution": 64},
           "baked 96": {"bake_resolution": 96},
           "static reuse, tolerance 0.5 C": {"tolerance_c": 0.5},
-          "static reuse, tolerance 0.02 C": {"tolerance_c": 0.02},
-          "occupancy 32": {"occupancy_resolution": 32}, "occupancy 64": {"occupancy_resolution": 64},
-          "baked 64 + occupancy 32": {"bake_resolution": 64, "occupancy_resolution": 32}}
+          "static reuse, tolerance 0.02 C": {"tolerance_c": 0.02}}
 #: levers of the RTF-against-resolution sweep (static camera)
-RESOLUTION_LEVERS = ("static reuse (default)", "occupancy 32", "baked 64")
+RESOLUTION_LEVERS = ("static reuse (default)", "baked 64")
 
 
 def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: float = 0.0) -> dict:

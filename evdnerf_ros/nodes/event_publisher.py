@@ -82,9 +82,6 @@ PARAMETERS = [
       "(an approximation: faster, slightly different events; 0: the field itself)", min=0, max=512),
     Param("bake_times", 0, "trained field, baked: frames over the field's time 0..1 (0: 4 per time texel)", min=0,
       max=4096),
-    Param("occupancy_resolution", 0, "trained field trained without an occupancy grid: make one of this many cells "
-      "per side from the field at start (its largest density over time) and skip the empty samples (an "
-      "approximation; 0: evaluate every sample)", min=0, max=512),
     Param("device", "auto", "where a trained field is evaluated: auto (cuda when available), cpu or cuda",
       choices=("auto", "cpu", "cuda"), read_only=True),
     Param("encoding", "evt3", "event message: evt3, evt2 or mono EventPacket, or array (dvs_msgs/EventArray)",
@@ -257,8 +254,7 @@ class EventPublisher(Node):
         duration = int(round(p["field_duration"] * NS)) or (self.t1 - self.t0)
         return FieldSource(self._run(), self.camera, duration_ns=duration, leave_out=p["leave_out"],
                            reuse_static=p["reuse_static"], bake_resolution=p["bake_resolution"],
-                           bake_times=p["bake_times"], occupancy_resolution=p["occupancy_resolution"],
-                           device=p["device"])
+                           bake_times=p["bake_times"], device=p["device"])
 
     def camera_pose(self, t_ns: int) -> np.ndarray:
         return self.track(t_ns) @ self.T_robot_cam

@@ -50,19 +50,17 @@ class SceneSource(CameraRenderer):
 
 def FieldSource(run_dir, camera: PinholeCamera, *, duration_ns: int, leave_out: bool = True,
                 reuse_static: bool = True, bake_resolution: int = 0, bake_times: int = 0,
-                occupancy_resolution: int = 0, chunk: int = 16384, device="cpu"):
+                chunk: int = 16384, device="cpu"):
     """The trained run in ``run_dir`` (``evdnerf train`` output) as a Renderer (a
     ``FieldRenderer``, ``kind`` "field"): scene time [0, duration_ns] maps to the field's
     normalised time [0, 1] (clamped outside).  ``reuse_static``: a static camera renders the
     rays and samples outside the run's dynamic region once; ``bake_resolution`` > 0: play back
-    the field baked into a grid (an approximation, see ``field.baked``); ``occupancy_resolution``
-    > 0: skip the samples of a grid made from the field (``train.run.playback_occupancy``; runs
-    trained without one); ``device``: auto, cpu or cuda."""
+    the field baked into a grid (an approximation, see ``field.baked``); ``device``: auto, cpu
+    or cuda."""
     from ..train.run import TrainedRun
 
     if isinstance(duration_ns, bool) or not isinstance(duration_ns, (int, np.integer)) or duration_ns <= 0:
         raise InputError(f"{run_dir}: field_duration must be > 0 s (the span the field's time 0..1 covers)")
     run = run_dir if isinstance(run_dir, TrainedRun) else TrainedRun.load(run_dir)
     return run.renderer(camera, duration_ns=int(duration_ns), leave_out=leave_out, reuse_static=reuse_static,
-                        bake_resolution=bake_resolution, bake_times=bake_times,
-                        occupancy_resolution=occupancy_resolution, chunk=chunk, device=device)
+                        bake_resolution=bake_resolution, bake_times=bake_times, chunk=chunk, device=device)

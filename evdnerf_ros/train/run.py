@@ -194,17 +194,14 @@ class TrainedRun:
 
     def renderer(self, camera, *, duration_ns: int | None = None, t_origin_ns: int = 0,
                  leave_out: bool = True, reuse_static: bool = True, bake_resolution: int = 0,
-                 bake_times: int = 0, occupancy_resolution: int = 0, chunk: int = 16384,
-                 device="cpu"):
+                 bake_times: int = 0, chunk: int = 16384, device="cpu"):
         """The field as a Renderer through ``camera``.  Scene time ``t_origin_ns`` ..
         ``t_origin_ns + duration_ns`` spans the field's time 0..1; ``duration_ns`` None: the
         training set's span (an error for checkpoints that do not record it).  The run's
         dynamic region is applied as in training.  ``leave_out`` / ``reuse_static``: the
         renderer's savings (``field.renderer``); ``bake_resolution`` > 0 plays back the field
         baked into a grid of that many vertices per axis and ``bake_times`` frames (0: auto;
-        ``field.baked``); ``occupancy_resolution`` > 0, for a run trained without an occupancy
-        grid: one of that many cells per side made now from the field (``playback_occupancy``),
-        so empty samples are skipped; ``device``: auto, cpu or cuda (``evdnerf_ros.device``)."""
+        ``field.baked``); ``device``: auto, cpu or cuda (``evdnerf_ros.device``)."""
         from ..device import resolve_device
         from ..field.renderer import FieldRenderer
 
@@ -216,9 +213,6 @@ class TrainedRun:
         cfg = self.config
         dev = resolve_device(device, f"{self.run_dir}: device")
         field = self.field.to(dev)
-        occupancy = self.occupancy
-        if occupancy is None and int(occupancy_resolution) > 0:
-            occupancy = playback_occupancy(field, int(occupancy_resolution), cfg.occupancy_threshold)
         if int(bake_resolution) > 0:
             from ..field.baked import BakedField
 
@@ -226,27 +220,13 @@ class TrainedRun:
                                     dynamic=self.dynamic, device=dev)
         return FieldRenderer(field, camera, self.box, duration_ns=duration_ns,
                              t_origin_ns=t_origin_ns, n_samples=cfg.n_samples, near=cfg.near,
-                             far=cfg.far, background=cfg.background, occupancy=occupancy,
+                             far=cfg.far, background=cfg.background, occupancy=self.occupancy,
                              dynamic=self.dynamic, leave_out=leave_out, reuse_static=reuse_static,
                              chunk=chunk, device=dev, source=str(self.run_dir))
 
     def __repr__(self) -> str:
         return (f"TrainedRun({str(self.run_dir)!r}, iteration={self.iteration}, "
                 f"backbone={self.config.backbone!r})")
-
-
-def playback_occupancy(field, resolution: int, threshold: float):
-    """An occupancy grid of a trained field for playback: the field's largest density at each
-    cell centre over its time texels and the midpoints between them (``planes``: the times
-    where its time planes bend; other fields: 65 times), above ``threshold``, dilated by one
-    cell.  An approximation (density between the sampled times and points is not bounded by
-    it); its effect on the events is on the publish benchmark's error curve."""
-    from ..field import OccupancyGrid
-
-    texels = int(getattr(field, "time_resolution", 0) or 0)
-    n_times = 2 * texels - 1 if texels >= 2 else 65
-    times = [k / (n_times - 1) for k in range(n_times)]
-    return OccupancyGrid(int(resolution)).update(field, times=times, threshold=threshold, dilate=1)
 
 
 def train_set_record(train_set) -> dict:
@@ -288,4 +268,4 @@ def _time_range(value, where):
     return int(value[0]), int(value[1])
 
 
-__all__ = ["TrainedRun", "train_set_record", "playback_occupancy", "REQUIRED_KEYS"]
+__all__ = ["TrainedRun", "train_set_record", "REQUIRED_KEYS"]
