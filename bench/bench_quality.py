@@ -46,6 +46,10 @@ LEVERS = {
     "background-cells-1024": {"background_cells": 1024},
     "time-res-32": {"field": {"time_resolution": 32}},
     "time-res-64": {"field": {"time_resolution": 64}},
+    "density-bias-3": {"field": {"density_bias": -3.0}},
+    "density-bias-5": {"field": {"density_bias": -5.0}},
+    "lr-0.01": {"lr": 0.01},
+    "lr-0.04": {"lr": 0.04},
     "lr-decay-0.1": {"lr_final": 0.1},
     "no-event-hinge": {"no_event_weight": 1.0},
     "time-l1-smooth": {"time_l1_weight": 1e-4, "time_smooth_weight": 1e-3},
@@ -53,6 +57,7 @@ LEVERS = {
     "samples-24": {"n_samples": 24},
     "rays-512": {"rays": 512},
     "rays-256": {"rays": 256},
+    "samples-32-rays-512": {"n_samples": 32, "rays": 512},
     "event-rays-0.25": {"event_ray_fraction": 0.25},
     "event-rays-0": {"event_ray_fraction": 0.0},
     "windows-32": {"windows": [32], "window_switch": []},
@@ -154,14 +159,16 @@ def child(args) -> None:
 
 
 def plot(result: dict, path: Path) -> None:
-    fig, ax = pyplot().subplots(1, 2, figsize=(13, 4.8))
-    for name, r in result["runs"].items():
+    plt = pyplot()
+    fig, ax = plt.subplots(1, 2, figsize=(13, 4.8))
+    colours = plt.get_cmap("tab20").colors         # more levers than the default cycle's 10
+    for i, (name, r) in enumerate(result["runs"].items()):
         pts = [(m["wall_s"], 100 * m["val_margin_closed"]) for m in r["curve"]
                if m.get("val_margin_closed") is not None]
         if pts:
             x, y = zip(*pts)
             ax[0].plot(x, y, marker=".", lw=2.2 if name == "baseline" else 1.2,
-                       color="k" if name == "baseline" else None,
+                       color="k" if name == "baseline" else colours[(2 * i) % 20 + (2 * i) // 20 % 2],
                        label=f"{name} ({r['ms_per_iter']:.0f} ms/it)")
     ax[0].axhline(0, color="grey", ls="--", lw=1)
     ax[0].set_xlabel(f"training wall time (s, {result['setting']['threads']} torch thread(s) per run)")

@@ -15,8 +15,9 @@ from evdnerf_ros.geometry.camera import PinholeCamera, look_at
 BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
 
-def small_planes(seed=0):
-    return PlanesField(resolutions=(8, 16), time_resolution=6, features=8, hidden=16, seed=seed)
+def small_planes(seed=0, time_resolution=6):
+    return PlanesField(resolutions=(8, 16), time_resolution=time_resolution, features=8, hidden=16,
+                       seed=seed)
 
 
 def small_dnerf():
@@ -254,5 +255,34 @@ def test_planes_decode_at_one_time_equals_decode():
         sf = f.space_features(x)
         pf = f.playback_features(sf)
         for t in (0.0, 0.2, 1 / 3, 0.5, 0.999, 1.0):
-            (da, ga), (db, gb) = f.decode(sf, torch.full((300, 1), t)), f.decode_at(pf, t)
+            (da, ga), (db, gb) = f.decode_per_point(sf, torch.full((300, 1), t)), f.decode_at(pf, t)
             assert float((da - db).abs().max()) < 1e-5 and float((ga - gb).abs().max()) < 1e-6
+
+
+@pytest.mark.parametrize("times", [6, 2])
+def test_planes_decode_at_one_time_has_the_bilinear_gradient(times):
+    """Training batches share one time per window edge, so ``decode`` takes the row-blend path
+    there: its values and the gradients of every plane and decoder weight equal the bilinear
+    lookup's (to float rounding), with several time rows or the fewest (2); mixed times take
+    the bilinear path itself."""
+    def grads(decode, t):
+        f = small_planes(time_resolution=times)
+        with torch.no_grad():
+            for p in f.time_planes:
+                p.add_(0.3 * torch.randn_like(p, generator=torch.Generator().manual_seed(1)))
+        x = torch.rand(200, 3, generator=torch.Generator().manual_seed(2)) * 2 - 1
+        density, grey = decode(f, f.space_features(x), t)
+        (density.square().sum() + grey.sum()).backward()
+        return density.detach(), [p.grad.clone() for p in f.parameters()]
+
+    for t in (0.0, 0.37, 1.0):
+        column = torch.full((200, 1), t)
+        a, ga = grads(lambda f, sf, t: f.decode(sf, t), column)
+        b, gb = grads(lambda f, sf, t: f.decode_per_point(sf, t), column)
+        assert torch.allclose(a, b, atol=1e-5)
+        assert all(torch.allclose(u, v, atol=1e-5, rtol=1e-4) for u, v in zip(ga, gb))
+    mixed = torch.linspace(0, 1, 200).reshape(-1, 1)
+    a, _ = grads(lambda f, sf, t: f.decode(sf, t), mixed)
+    b, _ = grads(lambda f, sf, t: f.decode_per_point(sf, t), mixed)
+    assert torch.equal(a, b)
+

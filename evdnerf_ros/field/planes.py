@@ -11,7 +11,10 @@ grey (sigmoid).  No view dependence.
 
 Static-view reuse: ``space_features`` returns the product of the three space planes per
 scale; ``decode`` multiplies in the three time planes and runs the MLP; ``decode_static``
-runs the MLP on the space product alone (time factors 1).
+runs the MLP on the space product alone (time factors 1).  When every point is at one time
+(a training batch's window edge, a published frame) ``decode`` blends each time plane to
+that time's row once and reads it at the points' columns (``decode_at``): the same values
+and gradients as the bilinear lookups (to float rounding), 1D gathers instead of 2D lookups.
 """
 
 from __future__ import annotations
@@ -103,6 +106,15 @@ class PlanesField(DynamicField):
         return [x, feats]
 
     def decode(self, features, t: torch.Tensor):
+        t = t.to(torch.float32)
+        if features[0].shape[0] and bool((t == t.reshape(-1)[0]).all()):
+            # every point at one time (a training batch's window edge): each time plane is
+            # blended to that time's row once and read at 1D columns, not looked up in 2D
+            return self.decode_at(self.playback_features(features), float(t.reshape(-1)[0]))
+        return self.decode_per_point(features, t)
+
+    def decode_per_point(self, features, t: torch.Tensor):
+        """``decode`` with bilinear lookups of the time planes at each point's own time."""
         x, feats = features
         n = x.shape[0]
         tt = (t.to(torch.float32).reshape(-1, 1).expand(n, 1)) * 2.0 - 1.0
