@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -260,3 +261,46 @@ def test_eval_config_values_reach_the_job(tmp_path, monkeypatch):
     cfg.write_text("max-views: 2\nwindows: 16\ndevice: cpu\n")
     assert main(["eval", "RUN", "T.h5", "--config", str(cfg), "--windows", "8"]) == 0
     assert (seen["max_views"], seen["n_windows"], seen["device"]) == (2, 8, "cpu")
+
+
+# ------------------------------------------------- an interrupt that lands in a finalizer
+
+class _RaisesInFinalizer:
+    """Raises ``exc`` from ``__del__``, where Python can only report and drop it: what a
+    signal's handler does when it runs while a finalizer (h5py's weakref callback) runs."""
+
+    def __init__(self, exc):
+        self.exc = exc
+
+    def __del__(self):
+        raise self.exc
+
+
+@pytest.mark.parametrize("exc, sig", [("KeyboardInterrupt", "SIGINT"), ("Terminated", "SIGTERM")])
+def test_an_interrupt_dropped_in_a_finalizer_is_delivered_again(exc, sig, monkeypatch):
+    import signal
+
+    from evdnerf_ros.cli.common import Terminated, _redeliver_swallowed_interrupt
+
+    kind = {"KeyboardInterrupt": KeyboardInterrupt, "Terminated": Terminated}[exc]
+    signum = getattr(signal, sig)
+    saved = signal.getsignal(signum)
+    # the handlers `evdnerf` runs with: Python's own for SIGINT; SIGTERM's has ignored the
+    # signal since it raised (a second TERM must not cut the clean-up short)
+    signal.signal(signum, signal.default_int_handler if sig == "SIGINT" else signal.SIG_IGN)
+    monkeypatch.setattr(sys, "unraisablehook", _redeliver_swallowed_interrupt)
+    try:
+        with pytest.raises(kind):
+            _RaisesInFinalizer(kind())          # dropped at once: __del__ runs here
+            for _ in range(200):                # the job's own code, where it lands again
+                time.sleep(0.01)
+    finally:
+        signal.signal(signum, saved)
+
+
+def test_other_exceptions_in_finalizers_are_reported_as_usual(monkeypatch, capsys):
+    from evdnerf_ros.cli.common import _redeliver_swallowed_interrupt
+
+    monkeypatch.setattr(sys, "unraisablehook", _redeliver_swallowed_interrupt)
+    _RaisesInFinalizer(ValueError("lost in a finalizer"))
+    assert "lost in a finalizer" in capsys.readouterr().err

@@ -16,7 +16,8 @@ import warnings
 from .. import __version__
 from ..errors import EvdnerfError
 from . import calibrate, events, ros, session, simulate, train
-from .common import Terminated, _fail, _on_sigterm, _Parser, _show_warning, geometry, number, os_error_message
+from .common import (Terminated, _fail, _on_sigterm, _Parser, _redeliver_swallowed_interrupt, _show_warning,
+                     geometry, number, os_error_message)
 
 __all__ = ["main", "build_parser", "number", "geometry", "Terminated", "os_error_message"]
 
@@ -48,8 +49,10 @@ def main(argv=None) -> int:
     except SystemExit as exc:            # --help (0) or a bad flag (2, one line printed): a status
         return exc.code if isinstance(exc.code, int) else 2
     warnings.showwarning = _show_warning
+    hook = sys.unraisablehook
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _on_sigterm)
+        sys.unraisablehook = _redeliver_swallowed_interrupt
     try:
         return args.func(args)
     except EvdnerfError as exc:
@@ -66,3 +69,5 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("evdnerf: interrupted", file=sys.stderr)
         return 130
+    finally:
+        sys.unraisablehook = hook

@@ -7,6 +7,7 @@ import argparse
 import errno
 import signal
 import sys
+import threading
 
 from ..errors import EvdnerfError
 
@@ -62,6 +63,34 @@ class Terminated(KeyboardInterrupt):
 def _on_sigterm(signum, frame):
     signal.signal(signal.SIGTERM, signal.SIG_IGN)   # one clean-up; a second TERM must not cut it short
     raise Terminated()
+
+
+def _redeliver_swallowed_interrupt(unraisable) -> None:
+    """``sys.unraisablehook`` of the CLI. Python runs a signal's handler between any two
+    bytecodes, also inside a finalizer (a ``__del__``, a weakref callback such as h5py's
+    object registry's); the KeyboardInterrupt / Terminated raised there cannot propagate, so
+    Python prints "Exception ignored ... Traceback" and drops it, and the job would run on
+    as if never interrupted. Deliver the signal again instead, from a helper thread so that
+    it lands once the finalizer is over (one that lands in a finalizer again comes back
+    here). Any other unraisable exception is reported as usual."""
+    exc = unraisable.exc_value
+    if not isinstance(exc, KeyboardInterrupt) or threading.current_thread() is not threading.main_thread():
+        sys.__unraisablehook__(unraisable)
+        return
+    signum = signal.SIGINT
+    if isinstance(exc, Terminated):
+        signum = signal.SIGTERM
+        signal.signal(signal.SIGTERM, _on_sigterm)  # it set SIG_IGN before raising
+    threading.Thread(target=_interrupt_main_soon, args=(signum,), name="redeliver-interrupt",
+                     daemon=True).start()
+
+
+def _interrupt_main_soon(signum: int) -> None:
+    import _thread
+    import time
+
+    time.sleep(0.01)           # let the finalizer (and this thread's start()) finish first
+    _thread.interrupt_main(signum)
 
 
 def os_error_message(exc: OSError) -> str:
