@@ -140,3 +140,68 @@ def test_publisher_renderer_draws_the_map_like_render_image(tmp_path, bake):
         np.testing.assert_allclose(r.render(T, 500_000_000), want, rtol=0, atol=1e-6)
     assert r.rays_rendered < r.rays_total                 # rays missing the box were left out
     assert np.ptp(want) > 0.1 and not math.isnan(float(want.sum()))
+
+
+def test_flat_static_world_is_the_field_without_its_static_part():
+    """``static_world="flat"``: every sample outside the dynamic region is empty and every ray
+    ends on one grey (the background map's mean over the sphere), and only rays through the
+    region are traced: equal to a full render of that field, at a moving camera's poses."""
+    from evdnerf_ros.errors import InputError
+    from evdnerf_ros.field import render_image
+    from evdnerf_ros.field.dynamic_region import DynamicRegion
+    from evdnerf_ros.field.renderer import FieldRenderer, flat_background
+
+    torch.manual_seed(7)
+    field = make_field("planes", resolutions=[8], time_resolution=4, features=4, hidden=8,
+                       background_cells=32, background_grey=0.4).eval()
+    with torch.no_grad():
+        field.background_map.fine.uniform_(-2, 2)
+        for tp in field.time_planes:
+            tp.uniform_(0.0, 3.0)
+        for sp in field.space_planes:                   # dense enough to show against the backdrop
+            sp.uniform_(1.0, 3.0)
+    box = [[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]]
+    mask = torch.zeros((8, 8, 8), dtype=torch.bool)
+    mask[3:5, 3:5, 2:6] = True
+    region = DynamicRegion(mask)
+    grey = flat_background(field, 0.25)
+    assert 0.0 < grey < 1.0 and grey != pytest.approx(0.4, abs=1e-3)     # the map's mean, not its start
+
+    class EmptyOutside(torch.nn.Module):     # the reference: the static field made empty
+        def __init__(self, f):
+            super().__init__()
+            self.f = f
+
+        def space_features(self, x):
+            return self.f.space_features(x)
+
+        def evaluate_times(self, x, times, is_dynamic):
+            out = []
+            for dens, g in self.f.evaluate_times(x, times, is_dynamic):
+                out.append((torch.where(is_dynamic, dens, torch.zeros_like(dens)), g))
+            return out
+
+    cam = PinholeCamera.from_fov(20, 16, 60.0)
+    r = FieldRenderer(field, cam, box, duration_ns=10 ** 9, n_samples=12, dynamic=region, static_world="flat")
+    for k, t in enumerate((200_000_000, 700_000_000)):              # a moving camera: new pose each time
+        T = look_at([0.3 + 0.2 * k, -3.0, 0.8], [0.0, 0.0, 0.0])
+        with torch.no_grad():
+            want = render_image(EmptyOutside(field), cam, T, t / 1e9, box, 12, dynamic=region,
+                                background=grey).numpy()
+        np.testing.assert_allclose(r.render(T, t), want, rtol=0, atol=1e-6)
+        assert np.ptp(want) > 0.01
+    assert r.rays_rendered < 0.5 * r.rays_total            # only rays through the region were traced
+    with pytest.raises(InputError, match="dynamic region"):
+        FieldRenderer(field, cam, box, duration_ns=10 ** 9, static_world="flat")
+    with pytest.raises(InputError, match="static_world"):
+        FieldRenderer(field, cam, box, duration_ns=10 ** 9, dynamic=region, static_world="none")
+
+
+def test_flat_background_of_a_uniform_map_is_its_grey():
+    from evdnerf_ros.field.renderer import flat_background
+
+    field = make_field("planes", resolutions=[8], time_resolution=4, features=4, hidden=8,
+                       background_cells=32, background_grey=0.3)
+    assert flat_background(field, 0.25) == pytest.approx(0.3, abs=1e-6)
+    assert flat_background(make_field("planes", resolutions=[8], time_resolution=4, features=4, hidden=8,
+                                       background_cells=0), 0.25) == 0.25

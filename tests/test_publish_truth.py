@@ -147,3 +147,27 @@ def test_baked_playback_is_close_to_the_field(tiny_run):
     d = np.stack(diffs)
     assert d.mean() < 0.02 and d.max() < 0.25, (d.mean(), d.max())
     assert baked.field.n_times == 4 * (run.field.time_resolution - 1) + 1
+
+
+def test_static_world_auto_is_flat_for_a_moving_camera_only(tmp_path):
+    from evdnerf_ros.eval.published import _write_trajectory
+    from evdnerf_ros.nodes.event_publisher import EventPublisher
+    from evdnerf_ros.train.run import TrainedRun
+
+    run = _changing_run(tmp_path)
+    t, T = TrainedRun.load(run).orbit(10**9)
+    static = _write_trajectory(tmp_path / "static.yaml", [0, 10**8], [T[0], T[0]])
+    moving = _write_trajectory(tmp_path / "moving.yaml", t[:2], T[:2])
+
+    def world(traj, **params):
+        node = EventPublisher(("--ros-args", "--log-level", "warn"), dds=False, overrides={
+            "run_dir": str(run), "trajectory": str(traj), "trajectory_max_gap": 2.0, "field_duration": 1.0,
+            **params})
+        with node:
+            return node.source.static_world
+
+    assert world(static) == "field"
+    assert world(moving) == "flat"
+    assert world(moving, duration=1e-9) == "flat"        # moving within the span, however short
+    assert world(moving, static_world="field") == "field"
+    assert world(static, static_world="flat") == "flat"

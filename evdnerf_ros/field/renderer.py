@@ -29,6 +29,16 @@ rounding of batched matrix products, ~1e-7; the tests hold them to 1e-6):
 - a ``planes`` field plays each time back through ``PlanesField.decode_at`` (its time planes
   blended to the row at that time once, then read at each sample's precomputed columns; equal
   to ``decode`` up to float rounding).
+- ``static_world``: what a ray sees outside the run's dynamic region. ``"field"`` (the
+  default): the static field and the learned background, as trained and evaluated.
+  ``"flat"``: nothing there (density 0) in front of one constant grey (the learned
+  background's mean over the sphere, else ``background``), so only rays that cross the
+  dynamic region are traced and no static sample is evaluated. Static training views say
+  next to nothing about the static world (it makes no events in them): a moving camera
+  sees the static field's fog and the background's noise sweep past as events the true
+  scene does not have (4x the true events on the fork's orbit), and ``"flat"`` leaves them
+  out; a static camera sees the static world make no events either way, but the moving
+  parts' contrast against what was behind them in training needs ``"field"``.
 - ``field`` may also be a :class:`~evdnerf_ros.field.baked.BakedField` (the ``bake``
   setting of :meth:`TrainedRun.renderer`): an explicit grid played back by interpolation, an
   approximation whose error the publish benchmark measures.
@@ -42,6 +52,7 @@ Build one from a run folder with :meth:`evdnerf_ros.train.run.TrainedRun.rendere
 
 from __future__ import annotations
 
+import math
 import operator
 
 import numpy as np
@@ -53,6 +64,8 @@ from .base import as_time_column
 from .render import (background_grey, camera_rays, normalize_points, ray_box_intersect,
                      sample_along_rays, volume_weights)
 
+#: What a ray sees outside the dynamic region (module docstring).
+STATIC_WORLDS = ("field", "flat")
 #: A static camera's plan is kept only while it holds at most this many bytes.
 PLAN_CACHE_BYTES = 1 << 30
 #: Poses whose matrices differ by at most this (m, or rotation entries) are the same pose: a
@@ -84,8 +97,8 @@ class FieldRenderer(CameraRenderer):
     def __init__(self, field, camera, box, *, duration_ns: int, t_origin_ns: int = 0,
                  n_samples: int = 64, near: float = 0.0, far: float = float("inf"),
                  background: float = 0.0, occupancy=None, dynamic=None, leave_out: bool = True,
-                 reuse_static: bool = True, chunk: int = 16384, device=None,
-                 source: str = "trained field"):
+                 reuse_static: bool = True, static_world: str = "field", chunk: int = 16384,
+                 device=None, source: str = "trained field"):
         from ..device import module_device, resolve_device
 
         if isinstance(duration_ns, bool) or not isinstance(duration_ns, (int, np.integer)) \
@@ -106,6 +119,13 @@ class FieldRenderer(CameraRenderer):
         self.dynamic = _on_device(dynamic, "mask", self.device)
         self.leave_out = bool(leave_out)
         self.reuse_static = bool(reuse_static)
+        if static_world not in STATIC_WORLDS:
+            raise InputError(f"{source}: static_world must be one of {', '.join(STATIC_WORLDS)}, got {static_world!r}")
+        if static_world == "flat" and self.dynamic is None:
+            raise InputError(f"{source}: static_world 'flat' keeps only the run's dynamic region, and this run has "
+                             "none (trained with dynamic_region: false); use static_world 'field'")
+        self.static_world = static_world
+        self.flat_grey = flat_background(self.field, self.background) if static_world == "flat" else None
         self.chunk = int(chunk)
         self.source = source
         self.rays_total = 0
@@ -135,10 +155,10 @@ class FieldRenderer(CameraRenderer):
             return self._plan_cache[1:]
         o, d = camera_rays(self.camera, T, device=self.device)
         n = o.shape[0]
-        backdrop = torch.as_tensor(background_grey(self.field, d, self.background),
-                                   dtype=torch.float32, device=self.device).expand(n).contiguous()
+        grey = self.flat_grey if self.flat_grey is not None else background_grey(self.field, d, self.background)
+        backdrop = torch.as_tensor(grey, dtype=torch.float32, device=self.device).expand(n).contiguous()
         rays = torch.arange(n, device=self.device)
-        if self.leave_out:
+        if self.leave_out or self.flat_grey is not None:
             rays = rays[self._ray_mask(o, d)]
         plans = [self._plan_chunk(o[j], d[j], j, backdrop[j]) for j in torch.split(rays, self.chunk)]
         if self.reuse_static and sum(p.nbytes for p in plans) + 4 * n <= PLAN_CACHE_BYTES:
@@ -148,14 +168,21 @@ class FieldRenderer(CameraRenderer):
         return plans, backdrop
 
     def _ray_mask(self, o, d):
+        """Rays that can see anything but the backdrop: with a sample in an occupied cell (every
+        ray that hits the box without a grid) and, with a flat static world, in the dynamic region."""
         t_near, t_far, hit = ray_box_intersect(o, d, self.box, self.near, self.far)
-        if self.occupancy is None or not bool(hit.any()):
+        flat = self.flat_grey is not None
+        if (self.occupancy is None and not flat) or not bool(hit.any()):
             return hit
         idx = torch.nonzero(hit).squeeze(1)
         z, _ = sample_along_rays(t_near[idx], t_far[idx], self.n_samples)
-        pts = o[idx, None, :] + d[idx, None, :] * z[..., None]
-        occ = self.occupancy.query(normalize_points(pts.reshape(-1, 3), self.box)).reshape(idx.numel(), -1)
-        hit[idx] = occ.any(dim=1)
+        x = normalize_points((o[idx, None, :] + d[idx, None, :] * z[..., None]).reshape(-1, 3), self.box)
+        keep = torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
+        if self.occupancy is not None:
+            keep &= self.occupancy.query(x)
+        if flat:
+            keep &= self.dynamic.query(x)
+        hit[idx] = keep.reshape(idx.numel(), -1).any(dim=1)
         return hit
 
     def _plan_chunk(self, o, d, rays, backdrop) -> _ChunkPlan:
@@ -168,7 +195,8 @@ class FieldRenderer(CameraRenderer):
         if self.occupancy is not None:
             valid = valid & self.occupancy.query(x)
         is_dyn = valid if self.dynamic is None else valid & self.dynamic.query(x)
-        s_idx = torch.nonzero(valid & ~is_dyn).squeeze(1)
+        # a flat static world: nothing outside the dynamic region, no static sample to evaluate
+        s_idx = torch.nonzero(valid & ~is_dyn).squeeze(1) if self.flat_grey is None else x.new_zeros(0, dtype=torch.long)
         sigma = torch.zeros(m * S, dtype=torch.float32, device=dev)
         grey = torch.zeros_like(sigma)
         if s_idx.numel():
@@ -238,6 +266,22 @@ class FieldRenderer(CameraRenderer):
         return np.maximum(img, 0.0)
 
 
+def flat_background(field, background: float) -> float:
+    """The one grey of a flat static world: the field's learned background map averaged over
+    the sphere (directions on a Fibonacci lattice, equal area each), else ``background``."""
+    bg_map = getattr(field, "background_map", None)
+    if bg_map is None:
+        return float(background)
+    n = 4096
+    k = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * k / n
+    r = torch.sqrt(1.0 - z * z)
+    phi = k * (math.pi * (3.0 - math.sqrt(5.0)))
+    dirs = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=1).to(torch.float32)
+    with torch.no_grad():
+        return float(bg_map(dirs.to(next(bg_map.parameters()).device)).mean())
+
+
 def _composite(sigma, grey, delta, background: torch.Tensor):
     """Rendered grey of rays from per-sample density and grey (``render.render_rays``'s rule);
     ``background``: (rays,) what each ray sees beyond the box."""
@@ -260,4 +304,4 @@ def _on_device(grid, attr: str, device):
     return out
 
 
-__all__ = ["FieldRenderer", "PLAN_CACHE_BYTES"]
+__all__ = ["FieldRenderer", "PLAN_CACHE_BYTES", "STATIC_WORLDS", "flat_background"]

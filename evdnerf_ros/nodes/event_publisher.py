@@ -78,6 +78,11 @@ PARAMETERS = [
       "field's occupancy grid)"),
     Param("reuse_static", True, "trained field, static camera: render the rays and samples outside the run's dynamic "
       "region once and per time only the dynamic samples (same events; false: every sample at every render)"),
+    Param("static_world", "auto", "trained field: what rays see outside the run's dynamic region: field (the static "
+      "field and learned background as trained), flat (nothing, in front of one constant grey: no events from a "
+      "static world the static training views could not show; only rays through the region are rendered) or auto "
+      "(flat when the camera moves during the published span, else field)", choices=("auto", "field", "flat"),
+      read_only=True),
     Param("bake_resolution", 0, "trained field: play back the field baked into a grid of this many vertices per axis "
       "(an approximation: faster, slightly different events; 0: the field itself)", min=0, max=512),
     Param("bake_times", 0, "trained field, baked: frames over the field's time 0..1 (0: 4 per time texel)", min=0,
@@ -252,9 +257,23 @@ class EventPublisher(Node):
         if self.scene is not None:
             return SceneSource(self.scene, self.camera, supersample=p["supersample"], leave_out=p["leave_out"])
         duration = int(round(p["field_duration"] * NS)) or (self.t1 - self.t0)
+        world = p["static_world"]
+        if world == "auto":
+            world = "flat" if self._camera_moves() else "field"
+        self.logger.info(f"trained field: static world {world}")
         return FieldSource(self._run(), self.camera, duration_ns=duration, leave_out=p["leave_out"],
-                           reuse_static=p["reuse_static"], bake_resolution=p["bake_resolution"],
+                           reuse_static=p["reuse_static"], static_world=world, bake_resolution=p["bake_resolution"],
                            bake_times=p["bake_times"], device=p["device"])
+
+    def _camera_moves(self) -> bool:
+        """Whether the camera pose changes during the published span (at its ends and every pose
+        between them: the track interpolates between poses)."""
+        from ..field.renderer import POSE_SAME
+
+        knots = self.track.t[(self.track.t > self.t0) & (self.track.t < self.t1)]
+        first = self.camera_pose(self.t0)
+        return any(float(np.abs(self.camera_pose(int(t)) - first).max()) > POSE_SAME
+                   for t in (*knots, self.t1))
 
     def camera_pose(self, t_ns: int) -> np.ndarray:
         return self.track(t_ns) @ self.T_robot_cam

@@ -49,12 +49,14 @@ class SceneSource(CameraRenderer):
 
 
 def FieldSource(run_dir, camera: PinholeCamera, *, duration_ns: int, leave_out: bool = True,
-                reuse_static: bool = True, bake_resolution: int = 0, bake_times: int = 0,
-                chunk: int = 16384, device="cpu"):
+                reuse_static: bool = True, static_world: str = "field", bake_resolution: int = 0,
+                bake_times: int = 0, chunk: int = 16384, device="cpu"):
     """The trained run in ``run_dir`` (``evdnerf train`` output) as a Renderer (a
     ``FieldRenderer``, ``kind`` "field"): scene time [0, duration_ns] maps to the field's
     normalised time [0, 1] (clamped outside).  ``reuse_static``: a static camera renders the
-    rays and samples outside the run's dynamic region once; ``bake_resolution`` > 0: play back
+    rays and samples outside the run's dynamic region once; ``static_world``: what rays see
+    outside that region (``field``: the trained static field and background; ``flat``: one
+    constant grey, only rays through the region traced); ``bake_resolution`` > 0: play back
     the field baked into a grid (an approximation, see ``field.baked``); ``device``: auto, cpu
     or cuda."""
     from ..train.run import TrainedRun
@@ -63,4 +65,5 @@ def FieldSource(run_dir, camera: PinholeCamera, *, duration_ns: int, leave_out: 
         raise InputError(f"{run_dir}: field_duration must be > 0 s (the span the field's time 0..1 covers)")
     run = run_dir if isinstance(run_dir, TrainedRun) else TrainedRun.load(run_dir)
     return run.renderer(camera, duration_ns=int(duration_ns), leave_out=leave_out, reuse_static=reuse_static,
-                        bake_resolution=bake_resolution, bake_times=bake_times, chunk=chunk, device=device)
+                        static_world=static_world, bake_resolution=bake_resolution, bake_times=bake_times,
+                        chunk=chunk, device=device)

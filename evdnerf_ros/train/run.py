@@ -193,13 +193,14 @@ class TrainedRun:
         return t, T
 
     def renderer(self, camera, *, duration_ns: int | None = None, t_origin_ns: int = 0,
-                 leave_out: bool = True, reuse_static: bool = True, bake_resolution: int = 0,
-                 bake_times: int = 0, chunk: int = 16384, device="cpu"):
+                 leave_out: bool = True, reuse_static: bool = True, static_world: str = "field",
+                 bake_resolution: int = 0, bake_times: int = 0, chunk: int = 16384, device="cpu"):
         """The field as a Renderer through ``camera``.  Scene time ``t_origin_ns`` ..
         ``t_origin_ns + duration_ns`` spans the field's time 0..1; ``duration_ns`` None: the
         training set's span (an error for checkpoints that do not record it).  The run's
         dynamic region is applied as in training.  ``leave_out`` / ``reuse_static``: the
-        renderer's savings (``field.renderer``); ``bake_resolution`` > 0 plays back the field
+        renderer's savings and ``static_world`` (field or flat) what rays see outside the dynamic
+        region (``field.renderer``); ``bake_resolution`` > 0 plays back the field
         baked into a grid of that many vertices per axis and ``bake_times`` frames (0: auto;
         ``field.baked``); ``device``: auto, cpu or cuda (``evdnerf_ros.device``)."""
         from ..device import resolve_device
@@ -222,7 +223,7 @@ class TrainedRun:
                              t_origin_ns=t_origin_ns, n_samples=cfg.n_samples, near=cfg.near,
                              far=cfg.far, background=cfg.background, occupancy=self.occupancy,
                              dynamic=self.dynamic, leave_out=leave_out, reuse_static=reuse_static,
-                             chunk=chunk, device=dev, source=str(self.run_dir))
+                             static_world=static_world, chunk=chunk, device=dev, source=str(self.run_dir))
 
     def __repr__(self) -> str:
         return (f"TrainedRun({str(self.run_dir)!r}, iteration={self.iteration}, "
