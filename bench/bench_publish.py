@@ -163,13 +163,19 @@ def trained_fork_run(work: Path, minutes: float = 2.0) -> tuple[Path, Path]:
 
 
 #: publisher levers of the published-vs-true sweep (node parameters)
-LEVERS = {"plain (every ray, every sample)": {"leave_out": False, "reuse_static": False},
-          "leave-out (occupancy rays)": {"reuse_static": False},
+LEVERS = {"plain (every ray, every sample)": {"leave_out": False, "reuse_static": False, "static_world": "field"},
+          "leave-out (occupancy rays)": {"reuse_static": False, "static_world": "field"},
           "static reuse (default)": {},
+          "static world field": {"static_world": "field"},
+          "static world flat": {"static_world": "flat"},
+          "min step 1 ms": {"min_step_ns": 1_000_000},
           "baked 32": {"bake_resolution": 32}, "baked 64": {"bake_resolution": 64},
           "baked 96": {"bake_resolution": 96},
           "static reuse, tolerance 0.5 C": {"tolerance_c": 0.5},
           "static reuse, tolerance 0.02 C": {"tolerance_c": 0.02}}
+#: levers that are the default on one path (static_world auto: field for a static camera, flat
+#: for a moving one) or meaningless there (the midpoint tolerance with a moving camera)
+SKIP = {"static": ("static world field",), "orbit": ("static world flat", "tolerance")}
 #: levers of the RTF-against-resolution sweep (static camera)
 RESOLUTION_LEVERS = ("static reuse (default)", "baked 64")
 
@@ -200,7 +206,7 @@ def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: 
     for path in ("static", "orbit"):
         ref, rows = None, []
         for name, params in LEVERS.items():
-            if (path == "orbit" and ("tolerance" in name)) or (levers and name not in levers):
+            if any(k in name for k in SKIP[path]) or (levers and name not in levers):
                 continue
             r = one(path, params, ref)
             ref = r.pop("reference")

@@ -149,7 +149,8 @@ def test_flat_static_world_is_the_field_without_its_static_part():
     from evdnerf_ros.errors import InputError
     from evdnerf_ros.field import render_image
     from evdnerf_ros.field.dynamic_region import DynamicRegion
-    from evdnerf_ros.field.renderer import FieldRenderer, flat_background
+    from evdnerf_ros.field.render import flat_background
+    from evdnerf_ros.field.renderer import FieldRenderer
 
     torch.manual_seed(7)
     field = make_field("planes", resolutions=[8], time_resolution=4, features=4, hidden=8,
@@ -189,6 +190,9 @@ def test_flat_static_world_is_the_field_without_its_static_part():
             want = render_image(EmptyOutside(field), cam, T, t / 1e9, box, 12, dynamic=region,
                                 background=grey).numpy()
         np.testing.assert_allclose(r.render(T, t), want, rtol=0, atol=1e-6)
+        with torch.no_grad():                            # render_image's own flat static world
+            flat = render_image(field, cam, T, t / 1e9, box, 12, dynamic=region, flat_background=grey).numpy()
+        np.testing.assert_allclose(flat, want, rtol=0, atol=1e-6)
         assert np.ptp(want) > 0.01
     assert r.rays_rendered < 0.5 * r.rays_total            # only rays through the region were traced
     with pytest.raises(InputError, match="dynamic region"):
@@ -198,7 +202,7 @@ def test_flat_static_world_is_the_field_without_its_static_part():
 
 
 def test_flat_background_of_a_uniform_map_is_its_grey():
-    from evdnerf_ros.field.renderer import flat_background
+    from evdnerf_ros.field.render import flat_background
 
     field = make_field("planes", resolutions=[8], time_resolution=4, features=4, hidden=8,
                        background_cells=32, background_grey=0.3)

@@ -37,7 +37,8 @@ def _cmd_eval(args) -> int:
         from ..eval.published import published_vs_true
 
         result = published_vs_true(args.run, args.train_set, n_windows=options.windows or options.published_windows,
-                                    static=options.published == "static", publisher={"device": options.device},
+                                    static=options.published == "static",
+                                    publisher={"device": options.device, "static_world": options.static_world},
                                     log=(lambda *_: None) if args.json else print)
         result.pop("reference")
         if args.json:
@@ -46,7 +47,8 @@ def _cmd_eval(args) -> int:
 
     result = run_eval(args.run, args.train_set, n_windows=options.windows, max_views=options.max_views,
                       image_path=Path(args.run) / "eval_events.png",
-                      log=(lambda *_: None) if args.json else print, device=options.device)
+                      log=(lambda *_: None) if args.json else print, device=options.device,
+                      static_world=options.static_world)
     if args.json:
         print(json.dumps(result, indent=2))
     return 0

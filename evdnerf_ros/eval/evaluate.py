@@ -8,7 +8,10 @@ ground truth dL of the events (Eq. 5), continuous and quantised, next to the all
 A moving view (validation views with a camera trajectory, e.g. `evdnerf simulate
 --moving-views`) is scored the same way, with B(t) rendered at the camera's pose at t
 (interpolated from its poses, as its pose topic's consumers do): every pixel may change,
-so nothing is skipped for it.
+so nothing is skipped for it. ``static_world`` says what the field shows outside its dynamic
+region, as the publisher's parameter of that name: ``auto`` (the default) is the trained
+static field for static views and a flat static world (nothing there, one constant grey) for
+moving views, where static training views cannot have shown the static world.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from ..events.slicing import window_edges
-from ..field.render import render_image
+from ..errors import InputError
+from ..field.render import flat_background, render_image
 from ..limits import check_memory
 from ..geometry.pose_track import PoseTrack
 from ..train.rays import camera_of
@@ -29,9 +33,10 @@ from .truth import TrueScene, margin_closed
 def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: int,
                    log_eps: float, near: float = 0.0, far: float = float("inf"),
                    background: float = 0.0, occupancy=None, dynamic=None, windows=None, truth=None,
-                   truth_metrics=None):
+                   truth_metrics=None, static_world: str = "auto"):
     """(pred (K, H, W), gt (K, H, W), metrics) over `views` x the chosen windows.
 
+    ``static_world``: auto, field or flat (module docstring; flat needs ``dynamic``).
     With `truth` (a TrueScene), metrics also hold "truth" (the true scene scored by the same
     protocol; pass `truth_metrics` to reuse an earlier score of the same views and windows)
     and "margin_closed": (field - floor) / (truth - floor) of PSNR, continuous and quantised."""
@@ -40,11 +45,18 @@ def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: i
     ks = protocol_windows(n_windows) if windows is None else list(windows)
     if not len(ks):
         ks = [0]        # one window (the whole sequence): the protocol would select none
+    if static_world not in ("auto", "field", "flat"):
+        raise InputError(f"static_world must be auto, field or flat, got {static_world!r}")
+    if static_world == "flat" and dynamic is None:
+        raise InputError("static_world flat keeps only the run's dynamic region, and this run has none; "
+                         "use field or auto")
     preds, gts = [], []
     for v in views:
         cam = camera_of(train_set.K(v), train_set.width, train_set.height)
         track = train_set.poses(v)
         pose_at = None if track is None else PoseTrack(*track, source=f"{train_set.path}: view {v} poses")
+        flat = static_world == "flat" or (static_world == "auto" and pose_at is not None and dynamic is not None)
+        flat_grey = flat_background(field, background) if flat else None
         gts.append(train_set.log_change_stack(v, edges)[ks])
         for k in ks:
             tn = train_set.normalized_time(edges[k:k + 2])
@@ -52,11 +64,11 @@ def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: i
                 b0, b1 = render_image(field, cam, train_set.pose(v), [float(tn[0]), float(tn[1])],
                                       box, n_samples, near=near, far=far, background=background,
                                       occupancy=occupancy, dynamic=dynamic,
-                                      changes_only=dynamic is not None)
+                                      changes_only=dynamic is not None, flat_background=flat_grey)
             else:
                 b0, b1 = (render_image(field, cam, pose_at(int(edges[k + j])), float(tn[j]), box,
                                        n_samples, near=near, far=far, background=background,
-                                       occupancy=occupancy, dynamic=dynamic)
+                                       occupancy=occupancy, dynamic=dynamic, flat_background=flat_grey)
                           for j in (0, 1))
             b0, b1 = (np.asarray(b.detach().cpu().numpy() if hasattr(b, "detach") else b, np.float64)
                       for b in (b0, b1))
@@ -150,10 +162,11 @@ def moving_views(train_set, views) -> list[str]:
 
 
 def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int | None = None,
-             image_path=None, factors=(1, 4, 8), log=print, device="cpu") -> dict:
+             image_path=None, factors=(1, 4, 8), log=print, device="cpu", static_world: str = "auto") -> dict:
     """`evdnerf eval RUN TRAIN.h5`: events metrics on validation and training views at the
     trained window count and 4x / 8x finer windows; GT vs prediction event images.
-    ``device``: auto, cpu or cuda (``evdnerf_ros.device``): where the field is evaluated."""
+    ``device``: auto, cpu or cuda (``evdnerf_ros.device``): where the field is evaluated;
+    ``static_world``: auto, field or flat (module docstring)."""
     import torch
 
     from ..device import resolve_device
@@ -166,7 +179,7 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
     field, cfg, box, iteration, dynamic = run.field.to(dev), run.config, run.box, run.iteration, run.dynamic
     n = int(n_windows or cfg.windows[-1])
     result = {"run": str(run_dir), "train_set": str(train_h5), "iteration": iteration,
-              "trained_windows": n, "device": str(dev), "lpips": None,
+              "trained_windows": n, "device": str(dev), "static_world": static_world, "lpips": None,
               "lpips_note": "not computed: LPIPS needs AlexNet weights, which cannot be downloaded here"}
     with TrainingSet(train_h5) as ts, torch.no_grad():
         truth, why = TrueScene.of(ts)
@@ -187,7 +200,7 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
                 pred, gt, m = evaluate_views(field, ts, views, n * factor, box=box,
                                              n_samples=cfg.n_samples, log_eps=cfg.log_eps,
                                              near=cfg.near, far=cfg.far, background=cfg.background,
-                                             dynamic=dynamic, truth=truth)
+                                             dynamic=dynamic, truth=truth, static_world=static_world)
                 key = f"{split}_windows_x{factor}"
                 result[key] = {name: {k: v for k, v in m[name].items() if k != "psnr_per_window"}
                                for name in ("continuous", "quantized", "zero_floor")}

@@ -27,6 +27,8 @@ background at every time, so their change is exactly zero, as the full render's 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
@@ -90,6 +92,22 @@ def background_grey(field: DynamicField, dirs: torch.Tensor, background: float):
     return background if bg_map is None else bg_map(dirs)
 
 
+def flat_background(field, background: float) -> float:
+    """The one grey of a flat static world: the field's learned background map averaged over
+    the sphere (directions on a Fibonacci lattice, equal area each), else ``background``."""
+    bg_map = getattr(field, "background_map", None)
+    if bg_map is None:
+        return float(background)
+    n = 4096
+    k = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * k / n
+    r = torch.sqrt(1.0 - z * z)
+    phi = k * (math.pi * (3.0 - math.sqrt(5.0)))
+    dirs = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=1).to(torch.float32)
+    with torch.no_grad():
+        return float(bg_map(dirs.to(next(bg_map.parameters()).device)).mean())
+
+
 def sample_along_rays(t_near, t_far, n_samples: int, perturb: bool = False,
                       generator: torch.Generator | None = None):
     """(N, S) sample distances and (N,) bin length."""
@@ -114,14 +132,16 @@ def render_rays(field: DynamicField, origins: torch.Tensor, dirs: torch.Tensor, 
                 box, n_samples: int = 64, *, near: float = 0.0, far: float = float("inf"),
                 background: float = 0.0, perturb: bool = False,
                 generator: torch.Generator | None = None, occupancy=None, dynamic=None,
-                changes_only: bool = False):
+                changes_only: bool = False, flat_background: float | None = None):
     """Render rays at one time or at several times sharing their samples.
 
     ``t_norm``: a float, an (N,) / (N, 1) tensor, or a list/tuple of those (static-view
     reuse: one result per time, samples and space features shared).
     ``occupancy``: an ``OccupancyGrid`` (or None); samples in empty cells are not
     evaluated (density 0).  ``dynamic``: a ``DynamicRegion`` (or None); ``changes_only``:
-    see the module docstring (needs ``dynamic``).
+    see the module docstring (needs ``dynamic``).  ``flat_background`` (needs ``dynamic``): a
+    flat static world, every sample outside the region empty and every ray ending on this grey
+    (``FieldRenderer``'s ``static_world="flat"``).
 
     Returns a dict (or a list of dicts for a list of times) with ``grey`` (N,),
     ``opacity`` (N,), ``depth`` (N,, expected distance; background rays -> 0),
@@ -143,8 +163,10 @@ def render_rays(field: DynamicField, origins: torch.Tensor, dirs: torch.Tensor, 
         if changes_only:
             ray_dynamic = is_dynamic.reshape(n, n_samples).any(dim=1)
             valid = valid & ray_dynamic[:, None].expand(n, n_samples).reshape(-1)
-    elif changes_only:
-        raise ValueError("changes_only needs a dynamic region")
+        if flat_background is not None:
+            valid = valid & is_dynamic
+    elif changes_only or flat_background is not None:
+        raise ValueError("changes_only and flat_background need a dynamic region")
     idx = torch.nonzero(valid, as_tuple=False).squeeze(1)
     ray_of_sample = torch.div(idx, n_samples, rounding_mode="floor")
     t_cols = [as_time_column(t, n, origins.device)[ray_of_sample] for t in times]
@@ -153,7 +175,7 @@ def render_rays(field: DynamicField, origins: torch.Tensor, dirs: torch.Tensor, 
                                      None if is_dynamic is None else is_dynamic[idx])
     else:
         evals = [(None, None)] * len(times)
-    bg = background_grey(field, dirs, background)
+    bg = background_grey(field, dirs, background) if flat_background is None else float(flat_background)
     out = []
     for dens_v, grey_v in evals:
         sigma = torch.zeros(n * n_samples, dtype=torch.float32, device=origins.device)
@@ -173,8 +195,8 @@ def render_rays(field: DynamicField, origins: torch.Tensor, dirs: torch.Tensor, 
 def render_image(field: DynamicField, camera, T_world_cam, t_norm, box,
                  n_samples: int = 64, *, chunk: int = 8192, near: float = 0.0,
                  far: float = float("inf"), background: float = 0.0, occupancy=None,
-                 dynamic=None, changes_only: bool = False, with_grad: bool = False,
-                 key: str = "grey"):
+                 dynamic=None, changes_only: bool = False, flat_background: float | None = None,
+                 with_grad: bool = False, key: str = "grey"):
     """Render a full image (H, W) float32 of ``key`` ("grey", "opacity" or "depth").
 
     ``t_norm`` as in ``render_rays`` (a list gives a list of images from shared samples).
@@ -191,7 +213,8 @@ def render_image(field: DynamicField, camera, T_world_cam, t_norm, box,
         for s in range(0, o.shape[0], chunk):
             res = render_rays(field, o[s:s + chunk], d[s:s + chunk], times, box, n_samples,
                               near=near, far=far, background=background,
-                              occupancy=occupancy, dynamic=dynamic, changes_only=changes_only)
+                              occupancy=occupancy, dynamic=dynamic, changes_only=changes_only,
+                              flat_background=flat_background)
             for k, r in enumerate(res):
                 parts[k].append(r[key])
     imgs = [torch.cat(p).reshape(camera.height, camera.width) for p in parts]

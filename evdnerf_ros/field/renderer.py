@@ -52,7 +52,6 @@ Build one from a run folder with :meth:`evdnerf_ros.train.run.TrainedRun.rendere
 
 from __future__ import annotations
 
-import math
 import operator
 
 import numpy as np
@@ -61,7 +60,7 @@ import torch
 from ..errors import InputError
 from ..renderer import CameraRenderer
 from .base import as_time_column
-from .render import (background_grey, camera_rays, normalize_points, ray_box_intersect,
+from .render import (background_grey, camera_rays, flat_background, normalize_points, ray_box_intersect,
                      sample_along_rays, volume_weights)
 
 #: What a ray sees outside the dynamic region (module docstring).
@@ -266,22 +265,6 @@ class FieldRenderer(CameraRenderer):
         return np.maximum(img, 0.0)
 
 
-def flat_background(field, background: float) -> float:
-    """The one grey of a flat static world: the field's learned background map averaged over
-    the sphere (directions on a Fibonacci lattice, equal area each), else ``background``."""
-    bg_map = getattr(field, "background_map", None)
-    if bg_map is None:
-        return float(background)
-    n = 4096
-    k = torch.arange(n, dtype=torch.float64) + 0.5
-    z = 1.0 - 2.0 * k / n
-    r = torch.sqrt(1.0 - z * z)
-    phi = k * (math.pi * (3.0 - math.sqrt(5.0)))
-    dirs = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=1).to(torch.float32)
-    with torch.no_grad():
-        return float(bg_map(dirs.to(next(bg_map.parameters()).device)).mean())
-
-
 def _composite(sigma, grey, delta, background: torch.Tensor):
     """Rendered grey of rays from per-sample density and grey (``render.render_rays``'s rule);
     ``background``: (rays,) what each ray sees beyond the box."""
@@ -304,4 +287,4 @@ def _on_device(grid, attr: str, device):
     return out
 
 
-__all__ = ["FieldRenderer", "PLAN_CACHE_BYTES", "STATIC_WORLDS", "flat_background"]
+__all__ = ["FieldRenderer", "PLAN_CACHE_BYTES", "STATIC_WORLDS"]
