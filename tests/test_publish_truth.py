@@ -171,3 +171,13 @@ def test_static_world_auto_is_flat_for_a_moving_camera_only(tmp_path):
     assert world(moving, duration=1e-9) == "flat"        # moving within the span, however short
     assert world(moving, static_world="field") == "field"
     assert world(static, static_world="flat") == "flat"
+
+
+def test_resolve_static_world():
+    from evdnerf_ros.field.renderer import resolve_static_world
+
+    assert resolve_static_world("auto", moving=True, has_region=True) == "flat"
+    assert resolve_static_world("auto", moving=False, has_region=True) == "field"
+    assert resolve_static_world("auto", moving=True, has_region=False) == "field"    # nothing to keep
+    assert resolve_static_world("flat", moving=False, has_region=True) == "flat"
+    assert resolve_static_world("field", moving=True, has_region=True) == "field"

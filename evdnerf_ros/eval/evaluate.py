@@ -23,6 +23,7 @@ import numpy as np
 from ..events.slicing import window_edges
 from ..errors import InputError
 from ..field.render import flat_background, render_image
+from ..field.renderer import resolve_static_world
 from ..limits import check_memory
 from ..geometry.pose_track import PoseTrack
 from ..train.rays import camera_of
@@ -55,7 +56,7 @@ def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: i
         cam = camera_of(train_set.K(v), train_set.width, train_set.height)
         track = train_set.poses(v)
         pose_at = None if track is None else PoseTrack(*track, source=f"{train_set.path}: view {v} poses")
-        flat = static_world == "flat" or (static_world == "auto" and pose_at is not None and dynamic is not None)
+        flat = resolve_static_world(static_world, moving=pose_at is not None, has_region=dynamic is not None) == "flat"
         flat_grey = flat_background(field, background) if flat else None
         gts.append(train_set.log_change_stack(v, edges)[ks])
         for k in ks:

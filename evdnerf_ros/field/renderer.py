@@ -65,6 +65,14 @@ from .render import (background_grey, camera_rays, flat_background, normalize_po
 
 #: What a ray sees outside the dynamic region (module docstring).
 STATIC_WORLDS = ("field", "flat")
+
+
+def resolve_static_world(choice: str, *, moving: bool, has_region: bool) -> str:
+    """``choice`` (auto, field or flat) for one camera: auto is flat for a moving camera of a
+    run with a dynamic region, else field."""
+    if choice != "auto":
+        return choice
+    return "flat" if moving and has_region else "field"
 #: A static camera's plan is kept only while it holds at most this many bytes.
 PLAN_CACHE_BYTES = 1 << 30
 #: Poses whose matrices differ by at most this (m, or rotation entries) are the same pose: a
@@ -287,4 +295,4 @@ def _on_device(grid, attr: str, device):
     return out
 
 
-__all__ = ["FieldRenderer", "PLAN_CACHE_BYTES", "STATIC_WORLDS"]
+__all__ = ["FieldRenderer", "PLAN_CACHE_BYTES", "STATIC_WORLDS", "resolve_static_world"]

@@ -81,7 +81,7 @@ PARAMETERS = [
     Param("static_world", "auto", "trained field: what rays see outside the run's dynamic region: field (the static "
       "field and learned background as trained), flat (nothing, in front of one constant grey: no events from a "
       "static world the static training views could not show; only rays through the region are rendered) or auto "
-      "(flat when the camera moves during the published span, else field)", choices=("auto", "field", "flat"),
+      "(flat when the camera moves during the published span and the run has a dynamic region, else field)", choices=("auto", "field", "flat"),
       read_only=True),
     Param("bake_resolution", 0, "trained field: play back the field baked into a grid of this many vertices per axis "
       "(an approximation: faster, slightly different events; 0: the field itself)", min=0, max=512),
@@ -257,9 +257,10 @@ class EventPublisher(Node):
         if self.scene is not None:
             return SceneSource(self.scene, self.camera, supersample=p["supersample"], leave_out=p["leave_out"])
         duration = int(round(p["field_duration"] * NS)) or (self.t1 - self.t0)
-        world = p["static_world"]
-        if world == "auto":
-            world = "flat" if self._camera_moves() else "field"
+        from ..field.renderer import resolve_static_world
+
+        world = resolve_static_world(p["static_world"], moving=self._camera_moves(),
+                                     has_region=self._run().dynamic is not None)
         self.logger.info(f"trained field: static world {world}")
         return FieldSource(self._run(), self.camera, duration_ns=duration, leave_out=p["leave_out"],
                            reuse_static=p["reuse_static"], static_world=world, bake_resolution=p["bake_resolution"],
