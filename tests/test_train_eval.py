@@ -77,16 +77,17 @@ def test_untrained_planes_predicts_no_change(tiny_set):
         pred, gt, m = evaluate_views(field, ts, moving, 8, box=default_box(ts),
                                      n_samples=16, log_eps=1e-3)
         assert np.abs(pred).max() > 1e-3 and np.abs(gt).max() > 0
-        # ... unless the static world is flat (auto, for a moving view of a run with a dynamic
+        # ... unless the static world is flat (auto: for a moving view of a run with a dynamic
         # region): then only the region shows, and here it is empty
         from evdnerf_ros.errors import InputError
         from evdnerf_ros.field.dynamic_region import DynamicRegion
 
         empty = DynamicRegion(torch.zeros((8, 8, 8), dtype=torch.bool))
         kw = dict(box=default_box(ts), n_samples=16, log_eps=1e-3)
-        pred, _, _ = evaluate_views(field, ts, moving, 8, dynamic=empty, **kw)
-        assert np.abs(pred).max() == 0.0
-        pred, _, _ = evaluate_views(field, ts, moving, 8, dynamic=empty, static_world="field", **kw)
+        for world in ("auto", "flat"):
+            pred, _, _ = evaluate_views(field, ts, moving, 8, dynamic=empty, static_world=world, **kw)
+            assert np.abs(pred).max() == 0.0, world
+        pred, _, _ = evaluate_views(field, ts, moving, 8, dynamic=empty, **kw)      # field, the default
         assert np.abs(pred).max() > 1e-3
         with pytest.raises(InputError, match="dynamic region"):
             evaluate_views(field, ts, moving, 8, static_world="flat", **kw)

@@ -38,7 +38,7 @@ def _cmd_eval(args) -> int:
 
         result = published_vs_true(args.run, args.train_set, n_windows=options.windows or options.published_windows,
                                     static=options.published == "static",
-                                    publisher={"device": options.device, "static_world": options.static_world},
+                                    publisher={"device": options.device},
                                     log=(lambda *_: None) if args.json else print)
         result.pop("reference")
         if args.json:

@@ -9,9 +9,9 @@ A moving view (validation views with a camera trajectory, e.g. `evdnerf simulate
 --moving-views`) is scored the same way, with B(t) rendered at the camera's pose at t
 (interpolated from its poses, as its pose topic's consumers do): every pixel may change,
 so nothing is skipped for it. ``static_world`` says what the field shows outside its dynamic
-region, as the publisher's parameter of that name: ``auto`` (the default) is the trained
-static field for static views and a flat static world (nothing there, one constant grey) for
-moving views, where static training views cannot have shown the static world.
+region, as the publisher's parameter of that name: ``field`` (the default: the field as
+trained), ``flat`` (nothing there, one constant grey) or ``auto`` (flat for moving views of a
+run with a dynamic region: what the publisher plays back for a moving camera).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from .truth import TrueScene, margin_closed
 def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: int,
                    log_eps: float, near: float = 0.0, far: float = float("inf"),
                    background: float = 0.0, occupancy=None, dynamic=None, windows=None, truth=None,
-                   truth_metrics=None, static_world: str = "auto"):
+                   truth_metrics=None, static_world: str = "field"):
     """(pred (K, H, W), gt (K, H, W), metrics) over `views` x the chosen windows.
 
     ``static_world``: auto, field or flat (module docstring; flat needs ``dynamic``).
@@ -163,7 +163,7 @@ def moving_views(train_set, views) -> list[str]:
 
 
 def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int | None = None,
-             image_path=None, factors=(1, 4, 8), log=print, device="cpu", static_world: str = "auto") -> dict:
+             image_path=None, factors=(1, 4, 8), log=print, device="cpu", static_world: str = "field") -> dict:
     """`evdnerf eval RUN TRAIN.h5`: events metrics on validation and training views at the
     trained window count and 4x / 8x finer windows; GT vs prediction event images.
     ``device``: auto, cpu or cuda (``evdnerf_ros.device``): where the field is evaluated;
