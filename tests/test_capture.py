@@ -180,13 +180,15 @@ def test_closed_loop_capture_sync_convert_train(virtual_rig, tmp_path):
         assert np.array_equal(np.sort(got, order=order), np.sort(inside, order=order)), name
         spans.append((int(sensor[0]), int(sensor[-1])))
         # the span: from the pre-roll before the trigger edge to DONE + settle (0.1 s) on the
-        # camera's clock. A transfer is never cut (EVT 3.0 words carry state), so after that end
-        # the bag holds only the rest of transfers that began before it: once the fork stops
-        # events are sparse, and under load one transfer can span seconds
+        # camera's clock, applied once the capture has read DONE from the servo. After that end
+        # the bag holds whole transfers (EVT 3.0 words carry state: never cut) that began before
+        # the capture learnt it; a quiet machine learns it before the stream gets there, and under
+        # CI load the loop reading DONE lagged the stream by 0.7 s. Once the fork stops events are
+        # sparse, so one transfer can span seconds: the bound is on where transfers begin
         end = placed[k].sensor_ns + 1000 * (v["done_device_us"] - v["start_device_us"]) + 100_000_000
         firsts = [int(pk.events["t"][0]) - stream.time_offset_ns for pk in iter_event_packets(out / name)
                   if pk.events.size]
-        assert sensor[0] >= placed[k].sensor_ns - 1_000_000_000 and max(firsts) <= end + 1_000_000, name
+        assert sensor[0] >= placed[k].sensor_ns - 1_000_000_000 and max(firsts) <= end + 2_000_000_000, name
         # thresholds from the driver's bias model for the view's biases: the twin's own
         assert v["thresholds_source"] == "bias model" and v["bias_changes"] == []
         assert (v["thresholds"]["c_pos"], v["thresholds"]["c_neg"]) == pytest.approx(vr.twin.thresholds(), rel=1e-9)
