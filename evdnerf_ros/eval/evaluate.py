@@ -57,9 +57,7 @@ def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: i
         track = train_set.poses(v)
         pose_at = None if track is None else PoseTrack(*track, source=f"{train_set.path}: view {v} poses")
         flat = resolve_static_world(static_world, moving=pose_at is not None, has_region=dynamic is not None) == "flat"
-        flat_grey = flat_background(field, background) if flat else None
         gts.append(train_set.log_change_stack(v, edges)[ks])
-        static_camera = None
         if pose_at is None:
             # a static camera: the pose's samples, the static field and the dynamic samples' space
             # features are planned once (the publisher's renderer), so each window end costs only
@@ -70,12 +68,14 @@ def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: i
                                           occupancy=occupancy, dynamic=dynamic,
                                           static_world="flat" if flat else "field",
                                           source=f"{train_set.path}: view {v}")
+            T = train_set.pose(v)
+        else:
+            flat_grey = flat_background(field, background) if flat else None
         for k in ks:
-            tn = train_set.normalized_time(edges[k:k + 2])
-            if static_camera is not None:
-                T = train_set.pose(v)
+            if pose_at is None:
                 b0, b1 = (static_camera.render(T, int(edges[k + j])) for j in (0, 1))
             else:
+                tn = train_set.normalized_time(edges[k:k + 2])
                 b0, b1 = (render_image(field, cam, pose_at(int(edges[k + j])), float(tn[j]), box,
                                        n_samples, near=near, far=far, background=background,
                                        occupancy=occupancy, dynamic=dynamic, flat_background=flat_grey)
