@@ -47,7 +47,7 @@ setup(
                  "eclipse-zenoh>=1.0,<2"],  # Zenoh transport and its independent peer (tests/test_ros_zenoh.py)
         "zenoh": ["eclipse-zenoh>=1.0,<2"],  # RMW_IMPLEMENTATION=rmw_zenoh_cpp (evdnerf_ros.ros.zenoh_transport)
     },
-    entry_points={"console_scripts": ["evdnerf = evdnerf_ros.cli:main",
+    entry_points={"console_scripts": ["evdnerf = evdnerf_ros.cli:run",
                                       "event_publisher = evdnerf_ros.nodes.event_publisher:main",
                                       "capture = rig.capture_cli:main"],
                   # plugin commands of the `evdnerf` CLI (evdnerf_ros never imports rig)
