@@ -235,6 +235,38 @@ def test_echo_reports_and_saves_trigger_events(dds_env, tmp_path):
     ctx.close()
 
 
+def test_echo_count_stops_inside_a_batch(dds_env):
+    """--count N shows exactly N messages even when more arrived in one take (here 10 back-to-back packets)."""
+    import threading
+
+    from evdnerf_ros.events import make_events
+    from evdnerf_ros.io.packetizer import Packetizer
+    from evdnerf_ros.ros.qos import LOOPBACK_XML, profile
+    from evdnerf_ros.ros.transport import DdsContext, DdsPublisher
+
+    ctx = DdsContext(int(dds_env["ROS_DOMAIN_ID"]), config=LOOPBACK_XML)
+    pub = DdsPublisher(ctx, EVENTS, "event_camera_msgs/msg/EventPacket", profile("default"))
+    t = np.arange(100, dtype=np.int64) * 1_000_000 + 3_000_000_000
+    ev = make_events(t, np.arange(100) % 16, np.arange(100) // 16 % 16, np.where(np.arange(100) % 2, 1, -1))
+    packets = []
+    Packetizer(lambda topic, msgtype, data, stamp: packets.append(data)).write_events(
+        EVENTS, ev, width=16, height=16, packet_ns=10_000_000)
+    assert len(packets) == 10
+    result = {}
+    th = threading.Thread(target=lambda: result.update(rep=run_echo(
+        EVENTS, count=3, duration=30, print_fn=lambda *_: None)))
+    th.start()
+    deadline = time.monotonic() + 10
+    while not pub.writer.get_publication_matched_status().current_count and time.monotonic() < deadline:
+        time.sleep(0.05)
+    for data in packets:
+        pub.publish_raw(data)
+    th.join(30)
+    rep = result["rep"]
+    assert rep.messages == 3 and rep.events == 30
+    ctx.close()
+
+
 def test_echo_qos_hint_names_its_own_flag(dds_env, capsys):
     """A reliable echo cannot hear a best-effort publisher: the warning says which flag fixes it."""
     import io

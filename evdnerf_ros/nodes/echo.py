@@ -142,7 +142,8 @@ class Echo(Node):
             if not self.sub.wait(0.1):
                 self.check_qos()
                 continue
-            for data, _ in self.sub.take_raw(1024):
+            # never take past --count: a batch may hold more (a peer repeating a packet must not be decoded twice)
+            for data, _ in self.sub.take_raw(count - rep.messages if count else 1024):
                 now = time.monotonic()
                 t_first = t_first or now
                 t_last = now
