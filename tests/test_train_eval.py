@@ -125,3 +125,60 @@ def test_frame_supervision_baseline_trains_and_renders_events(tiny_set, tmp_path
     assert losses[-1] < 0.5 * losses[0], losses
     assert min(losses[2:]) < min(losses[:2]), losses
     assert all(np.isfinite(x["val_psnr"]) and np.isfinite(x["val_psnr_zero_floor"]) for x in lines)
+
+
+def test_window_changes_renders_each_time_once_and_holds_few():
+    """Windows of 1x, 4x and 8x counts share ends: each distinct time is rendered once, in
+    ascending order, and only the images an unfinished window needs are held."""
+    from evdnerf_ros.eval.windows import scored_windows, window_changes
+
+    spans = [(int(e[k]), int(e[k + 1])) for n in (32, 128, 256)
+             for e, ks in [scored_windows(1_000, 1_000 + 999_983, n)] for k in ks]
+    import gc
+    import weakref
+
+    calls, refs, held = [], [], []
+
+    def log_image(t):
+        gc.collect()
+        held.append(sum(r() is not None for r in refs))    # images still held when the next is rendered
+        calls.append(t)
+        img = np.full((2, 3), np.sin(t * 1e-3))
+        refs.append(weakref.ref(img))
+        return img
+
+    out = window_changes(log_image, spans)
+    assert calls == sorted(set(calls)) and set(calls) == {t for s in spans for t in s}
+    assert len(calls) == 160 < 2 * len(spans) == 208      # 8 + 32 + 64 windows of the protocol
+    for (a, b), d in zip(spans, out):
+        assert np.array_equal(d, np.full((2, 3), np.sin(b * 1e-3) - np.sin(a * 1e-3)))
+    # memory: at most the starts of the windows open at that time (one per count), not every image
+    assert max(held) <= 3
+    assert scored_windows(0, 100, 1)[1] == [0]          # the protocol selects none: window 0 is scored
+
+
+def test_eval_of_several_counts_equals_each_count_alone(tiny_set):
+    """Sharing renders across window counts changes cost, not scores (field and true scene)."""
+    from evdnerf_ros.eval.evaluate import evaluate_views, evaluate_window_counts
+    from evdnerf_ros.eval.truth import TrueScene
+    from evdnerf_ros.field import make_field
+    from evdnerf_ros.io.trainingset import TrainingSet
+    from evdnerf_ros.train.rays import default_box
+
+    torch.manual_seed(3)
+    field = make_field("planes").eval()
+    with torch.no_grad():
+        for p in field.parameters():
+            p.add_(0.05 * torch.randn_like(p))          # a field that changes over time
+    with TrainingSet(tiny_set) as ts, torch.no_grad():
+        truth, _ = TrueScene.of(ts)
+        kw = dict(box=default_box(ts), n_samples=16, log_eps=1e-3, truth=truth)
+        views = ts.val_views[:3]                         # 2 static, 1 moving
+        together = evaluate_window_counts(field, ts, views, [8, 32, 64], **kw)
+        for n, (pred, gt, m) in zip([8, 32, 64], together):
+            p1, g1, m1 = evaluate_views(field, ts, views, n, **kw)
+            assert np.abs(pred).max() > 1e-4
+            np.testing.assert_array_equal(pred, p1)
+            np.testing.assert_array_equal(gt, g1)
+            assert m["continuous"]["psnr"] == m1["continuous"]["psnr"]
+            assert m["truth"]["quantized"]["psnr"] == m1["truth"]["quantized"]["psnr"]

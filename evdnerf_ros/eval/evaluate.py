@@ -20,81 +20,101 @@ from pathlib import Path
 
 import numpy as np
 
-from ..events.slicing import window_edges
 from ..errors import InputError
 from ..field.render import flat_background, render_image
 from ..field.renderer import FieldRenderer, resolve_static_world
 from ..limits import check_memory
 from ..geometry.pose_track import PoseTrack
 from ..train.rays import camera_of
-from .metrics import brightness_align, event_metrics, protocol_windows, psnr
+from .metrics import brightness_align, event_metrics, psnr
 from .truth import TrueScene, margin_closed
+from .windows import scored_windows, window_changes
 
 
-def evaluate_views(field, train_set, views, n_windows: int, *, box, n_samples: int,
-                   log_eps: float, near: float = 0.0, far: float = float("inf"),
-                   background: float = 0.0, occupancy=None, dynamic=None, windows=None, truth=None,
-                   truth_metrics=None, static_world: str = "field"):
-    """(pred (K, H, W), gt (K, H, W), metrics) over `views` x the chosen windows.
+def evaluate_views(field, train_set, views, n_windows: int, *, windows=None, truth=None,
+                   truth_metrics=None, **kw):
+    """(pred (K, H, W), gt (K, H, W), metrics) over `views` x the chosen windows of one window
+    count (``evaluate_window_counts``; ``windows``: the indices scored, default the protocol's).
 
-    ``static_world``: auto, field or flat (module docstring; flat needs ``dynamic``).
     With `truth` (a TrueScene), metrics also hold "truth" (the true scene scored by the same
     protocol; pass `truth_metrics` to reuse an earlier score of the same views and windows)
     and "margin_closed": (field - floor) / (truth - floor) of PSNR, continuous and quantised."""
-    t0, t1 = train_set.time_range
-    edges = window_edges(t0, t1, n_windows)
-    ks = protocol_windows(n_windows) if windows is None else list(windows)
-    if not len(ks):
-        ks = [0]        # one window (the whole sequence): the protocol would select none
+    [out] = evaluate_window_counts(field, train_set, views, [n_windows], windows=windows, truth=truth,
+                                   truth_metrics=[truth_metrics], **kw)
+    return out
+
+
+def evaluate_window_counts(field, train_set, views, counts, *, box, n_samples: int,
+                           log_eps: float, near: float = 0.0, far: float = float("inf"),
+                           background: float = 0.0, occupancy=None, dynamic=None, windows=None, truth=None,
+                           truth_metrics=None, static_world: str = "field") -> list:
+    """``evaluate_views`` at each window count of ``counts`` (one (pred, gt, metrics) each),
+    rendering the field and the true scene once per distinct window end of a view across the
+    counts (``eval.windows``).  ``static_world``: auto, field or flat (module docstring; flat
+    needs ``dynamic``); ``truth_metrics``: None or one earlier truth score (or None) per count."""
     if static_world not in ("auto", "field", "flat"):
         raise InputError(f"static_world must be auto, field or flat, got {static_world!r}")
     if static_world == "flat" and dynamic is None:
         raise InputError("static_world flat keeps only the run's dynamic region, and this run has none; "
                          "use field or auto")
-    preds, gts = [], []
+    t0, t1 = train_set.time_range
+    scored = [scored_windows(t0, t1, int(n), windows) for n in counts]
+    spans = [(int(edges[k]), int(edges[k + 1])) for edges, ks in scored for k in ks]
+    splits = np.cumsum([len(ks) for _, ks in scored])[:-1]
+    truth_metrics = list(truth_metrics) if truth_metrics is not None else [None] * len(counts)
+    score_truth = truth is not None and any(tm is None for tm in truth_metrics)
+    preds, gts, trues = [[] for _ in counts], [[] for _ in counts], [[] for _ in counts]
     for v in views:
         cam = camera_of(train_set.K(v), train_set.width, train_set.height)
         track = train_set.poses(v)
         pose_at = None if track is None else PoseTrack(*track, source=f"{train_set.path}: view {v} poses")
         flat = resolve_static_world(static_world, moving=pose_at is not None, has_region=dynamic is not None) == "flat"
-        gts.append(train_set.log_change_stack(v, edges)[ks])
         if pose_at is None:
             # a static camera: the pose's samples, the static field and the dynamic samples' space
-            # features are planned once (the publisher's renderer), so each window end costs only
-            # the dynamic samples' time lookup (3.6x faster per window than rendering each pair
-            # afresh; the same images to 2.4e-7)
+            # features are planned once (the publisher's renderer), so each time costs only the
+            # dynamic samples' time lookup (3.6x faster than rendering each time afresh; the same
+            # images to 2.4e-7)
             static_camera = FieldRenderer(field, cam, box, duration_ns=int(t1 - t0), t_origin_ns=int(t0),
                                           n_samples=n_samples, near=near, far=far, background=background,
                                           occupancy=occupancy, dynamic=dynamic,
                                           static_world="flat" if flat else "field",
                                           source=f"{train_set.path}: view {v}")
             T = train_set.pose(v)
+
+            def render(t: int):
+                return static_camera.render(T, t)
         else:
             flat_grey = flat_background(field, background) if flat else None
-        for k in ks:
-            if pose_at is None:
-                b0, b1 = (static_camera.render(T, int(edges[k + j])) for j in (0, 1))
-            else:
-                tn = train_set.normalized_time(edges[k:k + 2])
-                b0, b1 = (render_image(field, cam, pose_at(int(edges[k + j])), float(tn[j]), box,
-                                       n_samples, near=near, far=far, background=background,
-                                       occupancy=occupancy, dynamic=dynamic, flat_background=flat_grey)
-                          for j in (0, 1))
-            b0, b1 = (np.asarray(b.detach().cpu().numpy() if hasattr(b, "detach") else b, np.float64)
-                      for b in (b0, b1))
-            preds.append(np.log(b1 + log_eps) - np.log(b0 + log_eps))
-    pred, gt = np.stack(preds).astype(np.float32), np.concatenate(gts)
+
+            def render(t: int):
+                tn = float(train_set.normalized_time(np.array([t], np.int64))[0])
+                return render_image(field, cam, pose_at(t), tn, box, n_samples, near=near, far=far,
+                                    background=background, occupancy=occupancy, dynamic=dynamic,
+                                    flat_background=flat_grey)
+
+        def log_render(t: int) -> np.ndarray:
+            b = render(t)
+            return np.log(np.asarray(b.detach().cpu().numpy() if hasattr(b, "detach") else b, np.float64) + log_eps)
+
+        changes = np.split(np.stack(window_changes(log_render, spans)).astype(np.float32), splits)
+        true = np.split(truth.log_changes(v, spans), splits) if score_truth else [None] * len(counts)
+        for c, (edges, ks) in enumerate(scored):
+            preds[c].append(changes[c])
+            gts[c].append(train_set.log_change_stack(v, edges)[ks])
+            trues[c].append(true[c])
     c_pos, c_neg = train_set.thresholds
-    m = event_metrics(pred, gt, c_pos=c_pos, c_neg=c_neg)
-    if truth is not None:
-        if truth_metrics is None:
-            true = np.concatenate([truth.log_change_stack(v, edges, ks) for v in views])
-            truth_metrics = event_metrics(true, gt, c_pos=c_pos, c_neg=c_neg)
-        m["truth"] = truth_metrics
-        floor = m["zero_floor"]["psnr"]
-        m["margin_closed"] = {kind: margin_closed(m[kind]["psnr"], floor, truth_metrics[kind]["psnr"])
-                              for kind in ("continuous", "quantized")}
-    return pred, gt, m
+    out = []
+    for c in range(len(counts)):
+        pred, gt = np.concatenate(preds[c]), np.concatenate(gts[c])
+        m = event_metrics(pred, gt, c_pos=c_pos, c_neg=c_neg)
+        if truth is not None:
+            tm = truth_metrics[c] or event_metrics(np.concatenate(trues[c]), gt, c_pos=c_pos, c_neg=c_neg)
+            m["truth"] = tm
+            floor = m["zero_floor"]["psnr"]
+            m["margin_closed"] = {kind: margin_closed(m[kind]["psnr"], floor, tm[kind]["psnr"])
+                                  for kind in ("continuous", "quantized")}
+        out.append((pred, gt, m))
+    return out
 
 
 def validation_eval(*, n_windows: int | None = None, max_views: int | None = None):
@@ -206,11 +226,11 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
             check_memory(4.0 * 4 * len(views) * n * max(factors) * ts.width * ts.height,
                          f"{split}: {len(views)} views x {n * max(factors)} windows of {ts.width}x{ts.height}",
                          "lower --windows or --max-views")
-            for factor in factors:
-                pred, gt, m = evaluate_views(field, ts, views, n * factor, box=box,
-                                             n_samples=cfg.n_samples, log_eps=cfg.log_eps,
-                                             near=cfg.near, far=cfg.far, background=cfg.background,
-                                             dynamic=dynamic, truth=truth, static_world=static_world)
+            scores = evaluate_window_counts(field, ts, views, [n * f for f in factors], box=box,
+                                            n_samples=cfg.n_samples, log_eps=cfg.log_eps,
+                                            near=cfg.near, far=cfg.far, background=cfg.background,
+                                            dynamic=dynamic, truth=truth, static_world=static_world)
+            for factor, (pred, gt, m) in zip(factors, scores):
                 key = f"{split}_windows_x{factor}"
                 result[key] = {name: {k: v for k, v in m[name].items() if k != "psnr_per_window"}
                                for name in ("continuous", "quantized", "zero_floor")}

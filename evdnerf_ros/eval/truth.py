@@ -69,6 +69,13 @@ class TrueScene:
 
     def log_change_stack(self, view, edges: np.ndarray, ks) -> np.ndarray:
         """(len(ks), H, W) float32: the true dL of windows ks (edges in the common clock)."""
+        return self.log_changes(view, [(int(edges[k]), int(edges[k + 1])) for k in ks])
+
+    def log_changes(self, view, windows) -> np.ndarray:
+        """(len(windows), H, W) float32: the true dL of each (t_start, t_end) window (common
+        clock), rendering each distinct time once (``eval.windows.window_changes``)."""
+        from .windows import window_changes
+
         if view not in self.origin:
             raise EvdnerfError(f"{self.ts.path}: view {view}: no scene time recorded for it")
         renderer = self._renderer(self.scene, self._camera(view), supersample=self.supersample)
@@ -76,20 +83,12 @@ class TrueScene:
         pose_at = (PoseTrack(*track, source=f"view {view} poses") if track is not None
                    else (lambda _t, T=self.ts.pose(view): T))
         eps = float(self.ts.eps if self.ts.eps is not None else LOG_EPS)
-        cache: dict[int, np.ndarray] = {}
 
         def log_image(t_common: int) -> np.ndarray:
-            if t_common not in cache:
-                img = renderer.render(pose_at(t_common), t_common + self.origin[view])
-                cache[t_common] = np.log(np.asarray(img, np.float64) + eps)
-            return cache[t_common]
+            img = renderer.render(pose_at(t_common), t_common + self.origin[view])
+            return np.log(np.asarray(img, np.float64) + eps)
 
-        out = []
-        for k in ks:
-            d = log_image(int(edges[k + 1])) - log_image(int(edges[k]))
-            out.append(self._bin(d))
-            cache.pop(int(edges[k]), None)           # windows come in order: keep only the end
-        return np.stack(out).astype(np.float32)
+        return np.stack([self._bin(d) for d in window_changes(log_image, windows)]).astype(np.float32)
 
     def _bin(self, d: np.ndarray) -> np.ndarray:
         s = self.s

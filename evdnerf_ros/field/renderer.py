@@ -140,6 +140,7 @@ class FieldRenderer(CameraRenderer):
         self.samples_total = 0
         self.samples_evaluated = 0
         self._plan_cache = None
+        self._cells_box_cache = None
 
     def normalized_time(self, t_ns) -> float:
         """The field's time in [0, 1] of scene time ``t_ns`` (int64 ns)."""
@@ -165,43 +166,72 @@ class FieldRenderer(CameraRenderer):
         grey = self.flat_grey if self.flat_grey is not None else background_grey(self.field, d, self.background)
         backdrop = torch.as_tensor(grey, dtype=torch.float32, device=self.device).expand(n).contiguous()
         rays = torch.arange(n, device=self.device)
-        if self.leave_out or self.flat_grey is not None:
-            rays = rays[self._ray_mask(o, d)]
-        plans = [self._plan_chunk(o[j], d[j], j, backdrop[j]) for j in torch.split(rays, self.chunk)]
+        if self._skips_rays:
+            rays = rays[self._may_see_cells(o, d)]
+        plans = [p for p in (self._plan_chunk(o[j], d[j], j, backdrop[j]) for j in torch.split(rays, self.chunk))
+                 if p.n_rays]
         if self.reuse_static and sum(p.nbytes for p in plans) + 4 * n <= PLAN_CACHE_BYTES:
             self._plan_cache = (key, plans, backdrop)
         else:
             self._plan_cache = None
         return plans, backdrop
 
-    def _ray_mask(self, o, d):
-        """Rays that can see anything but the backdrop: with a sample in an occupied cell (every
-        ray that hits the box without a grid) and, with a flat static world, in the dynamic region."""
-        t_near, t_far, hit = ray_box_intersect(o, d, self.box, self.near, self.far)
-        flat = self.flat_grey is not None
-        if (self.occupancy is None and not flat) or not bool(hit.any()):
-            return hit
-        idx = torch.nonzero(hit).squeeze(1)
-        z, _ = sample_along_rays(t_near[idx], t_far[idx], self.n_samples)
-        x = normalize_points((o[idx, None, :] + d[idx, None, :] * z[..., None]).reshape(-1, 3), self.box)
-        keep = torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
-        if self.occupancy is not None:
-            keep &= self.occupancy.query(x)
-        if flat:
-            keep &= self.dynamic.query(x)
-        hit[idx] = keep.reshape(idx.numel(), -1).any(dim=1)
-        return hit
+    @property
+    def _skips_rays(self) -> bool:
+        """Only rays with a sample in a cell that can show anything are traced (module docstring)."""
+        return self.leave_out or self.flat_grey is not None
+
+    def _cells_box(self) -> np.ndarray:
+        """(2, 3) world box around every cell a traced ray must reach: the occupancy grid's
+        occupied cells, with a flat static world within the dynamic region's; padded by a
+        thousandth of the box for float rounding, so that it only ever admits more rays."""
+        lo, hi = self.box.reshape(2, 3)
+        out = np.stack([lo, hi])
+        grids = [self.occupancy.occupied] if self.occupancy is not None and self.occupancy.enabled else []
+        if self.flat_grey is not None:
+            grids.append(self.dynamic.mask)
+        for g in grids:
+            idx = torch.nonzero(g)
+            if not idx.numel():
+                return np.stack([lo, lo])           # nothing to see: no ray is traced
+            res = np.asarray(g.shape, np.float64)
+            first, last = idx.amin(0).cpu().numpy(), idx.amax(0).cpu().numpy() + 1
+            out = np.stack([np.maximum(out[0], lo + (hi - lo) * first / res),
+                            np.minimum(out[1], lo + (hi - lo) * last / res)])
+        pad = 1e-3 * (hi - lo)
+        return np.stack([out[0] - pad, out[1] + pad])
+
+    def _may_see_cells(self, o, d):
+        """(N,) bool: rays that hit the box and the cells' box (``_cells_box``); a cheap test
+        before the exact one per sample in ``_plan_chunk``."""
+        _, _, hit = ray_box_intersect(o, d, self.box, self.near, self.far)
+        if self._cells_box_cache is None:
+            self._cells_box_cache = self._cells_box()
+        cells = self._cells_box_cache
+        if not bool(np.all(cells[1] > cells[0])):
+            return torch.zeros_like(hit)
+        _, _, hit_cells = ray_box_intersect(o, d, cells, self.near, self.far)
+        return hit & hit_cells
 
     def _plan_chunk(self, o, d, rays, backdrop) -> _ChunkPlan:
         S, dev = self.n_samples, self.device
-        m = o.shape[0]
         t_near, t_far, hit = ray_box_intersect(o, d, self.box, self.near, self.far)
         z, delta = sample_along_rays(t_near, t_far, S)
         x = normalize_points((o[:, None, :] + d[:, None, :] * z[..., None]).reshape(-1, 3), self.box)
-        valid = hit[:, None].expand(m, S).reshape(-1)
+        valid = hit[:, None].expand(-1, S).reshape(-1)
         if self.occupancy is not None:
             valid = valid & self.occupancy.query(x)
         is_dyn = valid if self.dynamic is None else valid & self.dynamic.query(x)
+        if self._skips_rays:
+            # trace only rays with a sample that can show anything: an occupied one (with a flat
+            # static world, a dynamic one); every other ray sees exactly the backdrop
+            seen = (is_dyn if self.flat_grey is not None else valid).reshape(-1, S).any(dim=1)
+            if not bool(seen.all()):
+                keep = torch.nonzero(seen).squeeze(1)
+                rays, backdrop, delta = rays[keep], backdrop[keep], delta[keep]
+                x, valid, is_dyn = (a.reshape(-1, S, *a.shape[1:])[keep].reshape(-1, *a.shape[1:])
+                                    for a in (x, valid, is_dyn))
+        m = rays.numel()
         # a flat static world: nothing outside the dynamic region, no static sample to evaluate
         s_idx = torch.nonzero(valid & ~is_dyn).squeeze(1) if self.flat_grey is None else x.new_zeros(0, dtype=torch.long)
         sigma = torch.zeros(m * S, dtype=torch.float32, device=dev)
