@@ -182,3 +182,12 @@ def test_eval_of_several_counts_equals_each_count_alone(tiny_set):
             np.testing.assert_array_equal(gt, g1)
             assert m["continuous"]["psnr"] == m1["continuous"]["psnr"]
             assert m["truth"]["quantized"]["psnr"] == m1["truth"]["quantized"]["psnr"]
+
+
+def test_eval_scores_training_views_spread_over_the_ring():
+    from evdnerf_ros.eval.evaluate import spread_views
+
+    ring = [f"v{i:02d}" for i in range(18)]
+    assert spread_views(ring, 4) == ["v00", "v06", "v11", "v17"]
+    assert spread_views(ring, 0) == spread_views(ring, None) == spread_views(ring, 18) == ring
+    assert spread_views(ring[:3], 4) == ring[:3] and spread_views(ring, 1) == ["v00"]

@@ -46,6 +46,7 @@ def _cmd_eval(args) -> int:
         return 0
 
     result = run_eval(args.run, args.train_set, n_windows=options.windows, max_views=options.max_views,
+                      train_views=options.train_views,
                       image_path=Path(args.run) / "eval_events.png",
                       log=(lambda *_: None) if args.json else print, device=options.device,
                       static_world=options.static_world)

@@ -191,10 +191,23 @@ def moving_views(train_set, views) -> list[str]:
     return [v for v in views if train_set.info(v).moving]
 
 
+def spread_views(views, k: int | None) -> list[str]:
+    """At most ``k`` of ``views`` (None or 0: all), evenly spread over the list (a ring's
+    views are in order: the first k would be neighbours)."""
+    views = list(views)
+    if not k or k >= len(views):
+        return views
+    return [views[i] for i in np.unique(np.linspace(0, len(views) - 1, int(k)).round().astype(int))]
+
+
 def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int | None = None,
-             image_path=None, factors=(1, 4, 8), log=print, device="cpu", static_world: str = "field") -> dict:
+             train_views: int | None = 4, image_path=None, factors=(1, 4, 8), log=print, device="cpu",
+             static_world: str = "field") -> dict:
     """`evdnerf eval RUN TRAIN.h5`: events metrics on validation and training views at the
     trained window count and 4x / 8x finer windows; GT vs prediction event images.
+    ``max_views`` bounds every split (its first views); ``train_views`` (None or 0: all) the
+    training views, spread evenly over the set: they check the fit, the protocol's metric is the
+    validation views'.
     ``device``: auto, cpu or cuda (``evdnerf_ros.device``): where the field is evaluated;
     ``static_world``: auto, field or flat (module docstring)."""
     import torch
@@ -217,7 +230,7 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
         if truth is None:
             result["true_scene_note"] = why
         splits = {"val": static_views(ts, ts.val_views)[:max_views],
-                  "train": ts.train_views[:max_views],
+                  "train": spread_views(ts.train_views[:max_views], train_views),
                   "moving": moving_views(ts, ts.val_views)[:max_views]}
         for split, views in splits.items():
             if not views:

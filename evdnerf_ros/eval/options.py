@@ -14,6 +14,8 @@ class EvalOptions:
                                  none_help="the trained one")
     max_views: int | None = option(None, "evaluate at most this many views per split", kind=int, low=1,
                                    high=100_000, none_help="every view")
+    train_views: int = option(4, "training views scored, spread evenly over the set (a check of the fit; the "
+                              "protocol's metric is on the validation views); 0: every one", low=0, high=100_000)
     device: str = option("auto", "where the field is evaluated: auto (cuda when available), cpu or cuda",
                          choices=DEVICE_CHOICES)
     static_world: str = option("field", "what the field shows outside its dynamic region: field (as trained), "
