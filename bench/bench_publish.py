@@ -169,6 +169,7 @@ LEVERS = {"plain (every ray, every sample)": {"leave_out": False, "reuse_static"
           "static world field": {"static_world": "field"},
           "static world flat": {"static_world": "flat"},
           "min step 1 ms": {"min_step_ns": 1_000_000},
+          "min step 5 ms": {"min_step_ns": 5_000_000},
           "baked 32": {"bake_resolution": 32}, "baked 64": {"bake_resolution": 64},
           "baked 96": {"bake_resolution": 96},
           "static reuse, tolerance 0.5 C": {"tolerance_c": 0.5},
