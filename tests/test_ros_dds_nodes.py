@@ -198,10 +198,25 @@ def test_echo_shows_other_message_types(dds_env):
     assert rep.size_min == rep.size_max > 300     # 9 + 9 + 12 + 5 doubles and the header
 
 
-def test_echo_reports_and_saves_trigger_events(dds_env, tmp_path):
-    """EXT_TRIGGER edges inside EventPackets: counted, shown and saved with the events."""
+def _echo_of(pub, packets, **echo_kw):
+    """The report of an echo of EVENTS started before ``pub`` sends ``packets`` (once matched)."""
     import threading
 
+    result = {}
+    th = threading.Thread(target=lambda: result.update(rep=run_echo(EVENTS, duration=30, print_fn=lambda *_: None,
+                                                                    **echo_kw)))
+    th.start()
+    deadline = time.monotonic() + 10
+    while not pub.writer.get_publication_matched_status().current_count and time.monotonic() < deadline:
+        time.sleep(0.05)
+    for data in packets:
+        pub.publish_raw(data)
+    th.join(30)
+    return result["rep"]
+
+
+def test_echo_reports_and_saves_trigger_events(dds_env, tmp_path):
+    """EXT_TRIGGER edges inside EventPackets: counted, shown and saved with the events."""
     from evdnerf_ros.events import make_events, make_triggers
     from evdnerf_ros.io.packetizer import Packetizer
     from evdnerf_ros.ros.qos import LOOPBACK_XML, profile
@@ -215,17 +230,8 @@ def test_echo_reports_and_saves_trigger_events(dds_env, tmp_path):
     packets = []
     Packetizer(lambda topic, msgtype, data, stamp: packets.append(data)).write_events(
         EVENTS, ev, width=16, height=16, triggers=trig, packet_ns=20_000_000)
-    result, out = {}, tmp_path / "echo.npz"
-    th = threading.Thread(target=lambda: result.update(rep=run_echo(
-        EVENTS, count=len(packets), duration=30, npz=out, print_fn=lambda *_: None)))
-    th.start()
-    deadline = time.monotonic() + 10
-    while not pub.writer.get_publication_matched_status().current_count and time.monotonic() < deadline:
-        time.sleep(0.05)
-    for data in packets:
-        pub.publish_raw(data)
-    th.join(30)
-    rep = result["rep"]
+    out = tmp_path / "echo.npz"
+    rep = _echo_of(pub, packets, count=len(packets), npz=out)
     assert rep.events == 200 and rep.triggers == 3 and rep.trigger_rising == 2
     assert "3 trigger events (2 rising, 1 falling)" in format_report(rep)
     with np.load(out) as z:
@@ -237,8 +243,6 @@ def test_echo_reports_and_saves_trigger_events(dds_env, tmp_path):
 
 def test_echo_count_stops_inside_a_batch(dds_env):
     """--count N shows exactly N messages even when more arrived in one take (here 10 back-to-back packets)."""
-    import threading
-
     from evdnerf_ros.events import make_events
     from evdnerf_ros.io.packetizer import Packetizer
     from evdnerf_ros.ros.qos import LOOPBACK_XML, profile
@@ -252,17 +256,7 @@ def test_echo_count_stops_inside_a_batch(dds_env):
     Packetizer(lambda topic, msgtype, data, stamp: packets.append(data)).write_events(
         EVENTS, ev, width=16, height=16, packet_ns=10_000_000)
     assert len(packets) == 10
-    result = {}
-    th = threading.Thread(target=lambda: result.update(rep=run_echo(
-        EVENTS, count=3, duration=30, print_fn=lambda *_: None)))
-    th.start()
-    deadline = time.monotonic() + 10
-    while not pub.writer.get_publication_matched_status().current_count and time.monotonic() < deadline:
-        time.sleep(0.05)
-    for data in packets:
-        pub.publish_raw(data)
-    th.join(30)
-    rep = result["rep"]
+    rep = _echo_of(pub, packets, count=3)
     assert rep.messages == 3 and rep.events == 30
     ctx.close()
 
