@@ -199,6 +199,11 @@ def test_flat_static_world_is_the_field_without_its_static_part():
         FieldRenderer(field, cam, box, duration_ns=10 ** 9, static_world="flat")
     with pytest.raises(InputError, match="static_world"):
         FieldRenderer(field, cam, box, duration_ns=10 ** 9, dynamic=region, static_world="none")
+    # an empty region: nothing to trace, every pixel the flat grey
+    empty = DynamicRegion(torch.zeros((8, 8, 8), dtype=torch.bool))
+    r = FieldRenderer(field, cam, box, duration_ns=10 ** 9, n_samples=12, dynamic=empty, static_world="flat")
+    img = r.render(look_at([0.3, -3.0, 0.8], [0.0, 0.0, 0.0]), 500_000_000)
+    assert r.rays_rendered == 0 and np.all(img == np.float32(grey))
 
 
 def test_flat_background_of_a_uniform_map_is_its_grey():

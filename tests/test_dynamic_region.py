@@ -140,3 +140,46 @@ def test_footprint_dilation_and_min_events(tiny_train_h5):
 def test_region_mask_validation():
     with pytest.raises(ValueError, match="3D boolean grid"):
         DynamicRegion(torch.ones(4, 4, dtype=torch.bool))
+
+
+def _crossing_every_step(region, o, d, box, near=0.0):
+    """The reference: every quarter-voxel step of every ray inside the box tested."""
+    from evdnerf_ros.field.render import ray_box_intersect
+
+    lo, hi = np.asarray(box, np.float64)
+    n = max(2, int(np.ceil(np.linalg.norm(hi - lo) / (np.min((hi - lo) / np.array(region.resolution)) / 4))) + 1)
+    t0, t1, hit = ray_box_intersect(o, d, box, near, float("inf"))
+    z = t0[:, None] + (t1 - t0)[:, None] * torch.linspace(0.0, 1.0, n)[None, :]
+    pts = o[:, None, :] + d[:, None, :] * z[..., None]
+    return hit & region.query(normalize_points(pts.reshape(-1, 3), box)).reshape(-1, n).any(dim=1)
+
+
+def test_rays_crossing_tests_only_steps_near_the_region_with_the_same_answer():
+    """The steps outside the box around the dynamic voxels are skipped: the answer is the one of
+    testing every step, for solid and sparse regions, rays from inside and outside the box."""
+    rng = np.random.default_rng(0)
+    box = np.array([[-1.0, -0.5, -2.0], [1.5, 1.0, 0.5]])
+    for trial in range(12):
+        mask = torch.zeros(16, 16, 16, dtype=torch.bool)
+        a0 = rng.integers(0, 14, 3)
+        a1 = np.minimum(a0 + rng.integers(1, 6, 3), 16)
+        block = torch.ones(tuple(a1 - a0), dtype=torch.bool) if trial % 2 else \
+            torch.from_numpy(rng.random(a1 - a0) > 0.5)
+        mask[a0[0]:a1[0], a0[1]:a1[1], a0[2]:a1[2]] = block
+        region = DynamicRegion(mask)
+        o = torch.from_numpy(rng.normal(size=(2000, 3)) * 2).float()
+        d = torch.from_numpy(rng.normal(size=(2000, 3))).float()
+        got = region.rays_crossing(o, d, box, near=0.1, chunk=700)
+        assert torch.equal(got, _crossing_every_step(region, o, d, box, near=0.1)), trial
+        assert 0 < int(got.sum()) < got.numel()
+    empty = DynamicRegion(torch.zeros(8, 8, 8, dtype=torch.bool))
+    assert not bool(empty.rays_crossing(o, d, box).any())
+
+
+def test_grid_lookup_reads_the_nearest_cell_clamped():
+    from evdnerf_ros.field.occupancy import grid_lookup
+
+    g = torch.rand(5, 3, 7) > 0.5
+    x = torch.cat([torch.rand(5000, 3) * 2.4 - 1.2, torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])])
+    idx = [np.clip(((x[:, a].numpy() + 1.0) * 0.5 * n).astype(np.int64), 0, n - 1) for a, n in enumerate(g.shape)]
+    np.testing.assert_array_equal(grid_lookup(g, x).numpy(), g.numpy()[idx[0], idx[1], idx[2]])

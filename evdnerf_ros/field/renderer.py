@@ -60,6 +60,7 @@ import torch
 from ..errors import InputError
 from ..renderer import CameraRenderer
 from .base import as_time_column
+from .occupancy import cells_box
 from .render import (background_grey, camera_rays, flat_background, normalize_points, ray_box_intersect,
                      sample_along_rays, volume_weights)
 
@@ -181,35 +182,31 @@ class FieldRenderer(CameraRenderer):
         """Only rays with a sample in a cell that can show anything are traced (module docstring)."""
         return self.leave_out or self.flat_grey is not None
 
-    def _cells_box(self) -> np.ndarray:
-        """(2, 3) world box around every cell a traced ray must reach: the occupancy grid's
-        occupied cells, with a flat static world within the dynamic region's; padded by a
-        thousandth of the box for float rounding, so that it only ever admits more rays."""
+    def _cells_box(self) -> np.ndarray | None:
+        """(2, 3) world box around every cell a traced ray must reach (``occupancy.cells_box``):
+        the occupancy grid's occupied cells, with a flat static world within the dynamic
+        region's; None when there is none."""
         lo, hi = self.box.reshape(2, 3)
         out = np.stack([lo, hi])
         grids = [self.occupancy.occupied] if self.occupancy is not None and self.occupancy.enabled else []
         if self.flat_grey is not None:
             grids.append(self.dynamic.mask)
         for g in grids:
-            idx = torch.nonzero(g)
-            if not idx.numel():
-                return np.stack([lo, lo])           # nothing to see: no ray is traced
-            res = np.asarray(g.shape, np.float64)
-            first, last = idx.amin(0).cpu().numpy(), idx.amax(0).cpu().numpy() + 1
-            out = np.stack([np.maximum(out[0], lo + (hi - lo) * first / res),
-                            np.minimum(out[1], lo + (hi - lo) * last / res)])
-        pad = 1e-3 * (hi - lo)
-        return np.stack([out[0] - pad, out[1] + pad])
+            cells = cells_box(g, self.box)
+            if cells is None:
+                return None
+            out = np.stack([np.maximum(out[0], cells[0]), np.minimum(out[1], cells[1])])
+        return out if bool(np.all(out[1] > out[0])) else None
 
     def _may_see_cells(self, o, d):
         """(N,) bool: rays that hit the box and the cells' box (``_cells_box``); a cheap test
         before the exact one per sample in ``_plan_chunk``."""
         _, _, hit = ray_box_intersect(o, d, self.box, self.near, self.far)
         if self._cells_box_cache is None:
-            self._cells_box_cache = self._cells_box()
-        cells = self._cells_box_cache
-        if not bool(np.all(cells[1] > cells[0])):
-            return torch.zeros_like(hit)
+            self._cells_box_cache = (self._cells_box(),)
+        cells = self._cells_box_cache[0]
+        if cells is None:
+            return torch.zeros_like(hit)            # nothing to see: no ray is traced
         _, _, hit_cells = ray_box_intersect(o, d, cells, self.near, self.far)
         return hit & hit_cells
 
