@@ -236,8 +236,9 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
             if not views:
                 continue
             # ground truth and prediction stacks of every window of every view, float32, plus metric copies
-            check_memory(4.0 * 4 * len(views) * n * max(factors) * ts.width * ts.height,
-                         f"{split}: {len(views)} views x {n * max(factors)} windows of {ts.width}x{ts.height}",
+            # (every window count's stacks are held together: renders are shared across them)
+            check_memory(4.0 * 4 * len(views) * n * sum(factors) * ts.width * ts.height,
+                         f"{split}: {len(views)} views x {n * sum(factors)} windows of {ts.width}x{ts.height}",
                          "lower --windows or --max-views")
             scores = evaluate_window_counts(field, ts, views, [n * f for f in factors], box=box,
                                             n_samples=cfg.n_samples, log_eps=cfg.log_eps,
