@@ -320,8 +320,16 @@ int main(int argc, char** argv) {
         std::memcpy(d.data() + 12, &seq, 8);
         auto t0 = std::chrono::steady_clock::now();
         w->write(&d);
+        auto sent = t0;
         bool done = false;
         while (!done && std::chrono::steady_clock::now() < t_end) {
+          // the request topic is volatile: a request written before the server's reader has matched
+          // ours (its side of discovery can lag ours under load) is lost, so send it again until
+          // answered, as a client that cannot see the server's side would
+          if (std::chrono::steady_clock::now() - sent > std::chrono::milliseconds(500)) {
+            w->write(&d);
+            sent = std::chrono::steady_clock::now();
+          }
           {
             std::lock_guard<std::mutex> lk(rl->m);
             for (auto& r : rl->got) {
