@@ -168,7 +168,7 @@ def test_flat_static_world_is_the_field_without_its_static_part():
     grey = flat_background(field, 0.25)
     assert 0.0 < grey < 1.0 and grey != pytest.approx(0.4, abs=1e-3)     # the map's mean, not its start
 
-    class EmptyOutside(torch.nn.Module):     # the reference: the static field made empty
+    class EmptyOutside(torch.nn.Module):     # the reference: the static field made empty, the region faded
         def __init__(self, f):
             super().__init__()
             self.f = f
@@ -178,8 +178,9 @@ def test_flat_static_world_is_the_field_without_its_static_part():
 
         def evaluate_times(self, x, times, is_dynamic):
             out = []
+            fade = region.inner_weight(x)
             for dens, g in self.f.evaluate_times(x, times, is_dynamic):
-                out.append((torch.where(is_dynamic, dens, torch.zeros_like(dens)), g))
+                out.append((torch.where(is_dynamic, dens * fade, torch.zeros_like(dens)), g))
             return out
 
     cam = PinholeCamera.from_fov(20, 16, 60.0)

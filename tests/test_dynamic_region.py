@@ -183,3 +183,24 @@ def test_grid_lookup_reads_the_nearest_cell_clamped():
     x = torch.cat([torch.rand(5000, 3) * 2.4 - 1.2, torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])])
     idx = [np.clip(((x[:, a].numpy() + 1.0) * 0.5 * n).astype(np.int64), 0, n - 1) for a, n in enumerate(g.shape)]
     np.testing.assert_array_equal(grid_lookup(g, x).numpy(), g.numpy()[idx[0], idx[1], idx[2]])
+
+
+def test_inner_weight_fades_to_zero_at_the_region_boundary():
+    """A flat static world's fade (``inner_weight``): 1 at the centre of a cell deep inside, 0 in
+    every cell outside a box-shaped region, and continuous across its faces."""
+    mask = torch.zeros(8, 8, 8, dtype=torch.bool)
+    mask[2:6, 2:6, 2:6] = True
+    region = DynamicRegion(mask)
+    centre = lambda i, j, k: torch.tensor([[(i + 0.5) / 4 - 1, (j + 0.5) / 4 - 1, (k + 0.5) / 4 - 1]])  # noqa: E731
+    assert float(region.inner_weight(centre(3, 3, 3))) == 1.0
+    x = torch.rand(20000, 3) * 2 - 1
+    w = region.inner_weight(x)
+    assert float(w.min()) >= 0.0 and float(w.max()) <= 1.0
+    assert not bool(w[~region.query(x)].any())                    # nothing outside the region
+    line = torch.zeros(4001, 3)
+    line[:, 0] = torch.linspace(-1, 1, 4001)                     # across two faces, through the centre
+    line[:, 1:] = 0.01
+    wl = region.inner_weight(line)
+    assert float(wl.max()) == 1.0 and float(wl[0]) == 0.0
+    # at most the steepest slope (2 per cell width, a cell is 0.25 wide) times the step
+    assert float(wl.diff().abs().max()) <= 8.0 * (2 / 4000) + 1e-6

@@ -181,3 +181,24 @@ def test_resolve_static_world():
     assert resolve_static_world("auto", moving=True, has_region=False) == "field"    # nothing to keep
     assert resolve_static_world("flat", moving=False, has_region=True) == "flat"
     assert resolve_static_world("field", moving=True, has_region=True) == "field"
+
+
+def test_per_pixel_sampling_follows_a_moving_camera_only(tmp_path):
+    """``per_pixel`` auto: a moving camera refines its time steps pixel by pixel, rendering far
+    fewer pixel values than whole images for events close to theirs; a static camera keeps whole
+    images (their static part is reused)."""
+    from evdnerf_ros.eval.published import _write_trajectory
+    from evdnerf_ros.train.run import TrainedRun
+
+    run = _changing_run(tmp_path)
+    t, T = TrainedRun.load(run).orbit(10**9)
+    moving = _write_trajectory(tmp_path / "moving.yaml", t[:2], T[:2])
+    kw = dict(trajectory=str(moving), duration=0.04, trajectory_max_gap=2.0, adaptive=True)
+    pix, pix_ev = _publish(run, **kw)
+    img, img_ev = _publish(run, per_pixel="false", **kw)
+    assert pix.pixels_rendered > 0 and img.pixels_rendered == 0
+    assert pix.pixels_rendered < 0.5 * img.renders * 24 * 20
+    assert img_ev.size > 50 and abs(pix_ev.size - img_ev.size) <= 0.2 * img_ev.size, (pix_ev.size, img_ev.size)
+    static = _write_trajectory(tmp_path / "static.yaml", [0, 10**8], [T[0], T[0]])
+    still, _ = _publish(run, trajectory=str(static), duration=0.04, adaptive=True)
+    assert still.pixels_rendered == 0 and still.renders > 0

@@ -181,3 +181,49 @@ def test_field_renderer_places_only_samples_near_the_cells_and_draws_the_same(wo
                             flat_background=grey).detach().numpy()
         np.testing.assert_allclose(r.render(T, t), np.maximum(want, 0), rtol=0, atol=1e-6)
         assert np.ptp(want) > 0.01
+
+
+@pytest.mark.parametrize("world", ["field", "flat"])
+def test_render_pixels_draws_pixels_of_many_poses_and_times_as_render(world):
+    """``render_pixels`` (the per-pixel sampler's batch): pixels of several poses and times in one
+    call, in any order, equal to the images ``render`` draws, and it checks what it is given."""
+    from evdnerf_ros.field import make_field
+    from evdnerf_ros.field.dynamic_region import DynamicRegion
+    from evdnerf_ros.field.occupancy import OccupancyGrid
+    from evdnerf_ros.field.renderer import FieldRenderer
+
+    torch.manual_seed(6)
+    field = make_field("planes", resolutions=[8], time_resolution=4, features=4, hidden=8).eval()
+    with torch.no_grad():
+        for tp in field.time_planes:
+            tp.uniform_(0.0, 3.0)
+        for sp in field.space_planes:
+            sp.uniform_(1.0, 3.0)
+    box = [[-0.6, -0.5, -0.4], [0.5, 0.6, 0.7]]
+    cells = torch.zeros(10, 10, 10, dtype=torch.bool)
+    cells[2:8, 2:6, 2:8] = True
+    mask = torch.zeros((8, 8, 8), dtype=torch.bool)
+    mask[3:6, 2:5, 3:7] = True
+    r = FieldRenderer(field, CAM, box, duration_ns=10 ** 9, n_samples=24, occupancy=OccupancyGrid.from_footprint(cells),
+                      dynamic=DynamicRegion(mask), static_world=world, background=0.3, chunk=200)
+    times = np.array([100_000_000, 400_000_000, 900_000_000], np.int64)
+    poses = np.stack([_moving_pose(t) for t in times])
+    n = CAM.width * CAM.height
+    rng = np.random.default_rng(0)
+    which = rng.integers(0, 3, 900)
+    pixels = rng.integers(0, n, 900)
+    got = r.render_pixels(poses, times, which, pixels)
+    assert got.shape == (900,) and got.dtype == np.float32
+    images = [r.render(poses[k], int(times[k])).ravel() for k in range(3)]
+    assert max(np.ptp(im) for im in images) > 0.01
+    np.testing.assert_allclose(got, [images[k][p] for k, p in zip(which, pixels)], rtol=0, atol=1e-6)
+    with pytest.raises(InputError, match="pixel index is outside"):
+        r.render_pixels(poses, times, [0], [n])
+    with pytest.raises(InputError, match="one length"):
+        r.render_pixels(poses, times, [0, 1], [0])
+    with pytest.raises(InputError, match="2 times for 3 poses"):
+        r.render_pixels(poses, times[:2], [0], [0])
+    bent = poses.copy()
+    bent[1, 0, 0] = 2.0
+    with pytest.raises(InputError, match=r"T_world_cam\[1\].*not a rigid"):
+        r.render_pixels(bent, times, [0], [0])

@@ -122,6 +122,34 @@ def test_pose_track_slerps_and_interpolates_linearly():
         track(111)
 
 
+def test_pose_track_gives_many_poses_at_once_as_one_by_one():
+    """``poses(times)`` (the per-pixel sampler's batch) equals slerp of each segment's pair, time by time."""
+    from evdnerf_ros.geometry.rotations import quat_to_matrix, slerp
+
+    rng = np.random.default_rng(4)
+    t = np.array([0, 40, 100, 260, 300], np.int64)
+    T = np.stack([np.eye(4)] * 5)
+    for k in range(5):
+        q = rng.normal(size=4)
+        T[k, :3, :3] = quat_to_matrix(q / np.linalg.norm(q))
+        T[k, :3, 3] = rng.normal(size=3)
+    track = PoseTrack(t, T)
+    times = np.array([0, 5, 40, 41, 99, 100, 180, 299, 300], np.int64)
+    many = track.poses(times)
+    assert many.shape == (9, 4, 4)
+    for k, tt in enumerate(times):
+        i = min(int(np.searchsorted(t, tt, "right")) - 1, 3)
+        u = (tt - t[i]) / (t[i + 1] - t[i])
+        want = np.eye(4)
+        want[:3, :3] = quat_to_matrix(slerp(track.q[i], track.q[i + 1], u))
+        want[:3, 3] = track.p[i] + u * (track.p[i + 1] - track.p[i])
+        np.testing.assert_allclose(many[k], want, rtol=0, atol=1e-15)
+        np.testing.assert_array_equal(track(int(tt)), many[k])
+    np.testing.assert_allclose(many[[2, 5, 8]], T[[1, 2, 4]], atol=1e-12)     # at the poses themselves
+    with pytest.raises(InputError, match="time 301 ns is outside"):
+        track.poses([0, 301])
+
+
 @pytest.mark.parametrize("mutate,match", [
     (lambda p: p[3].update(t_ns=p[2]["t_ns"]), "does not come after pose 2"),
     (lambda p: p[5].update(t_ns=p[1]["t_ns"] - 1), "does not come after"),

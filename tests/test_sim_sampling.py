@@ -237,3 +237,105 @@ def test_motion_guard_arguments():
     with pytest.raises(InputError, match="max_travel_px"):
         simulate_renderer(lambda t: np.ones((2, 3)), 0, 10_000, EventGenerator(3, 2),
                           travel_px=lambda a, b: 0.0, max_travel_px=float("nan"))
+
+
+# ----------------------------------------------------------------- per-pixel adaptive sampling
+def _edge_pixels(edge):
+    """SigmoidEdge as a per-pixel renderer: pixel x at time t (both (M,))."""
+    def render_pixels(t, pix):
+        z = (np.asarray(t, np.float64) - edge.tc[pix]) / edge.tau
+        return np.exp(edge.lo + edge.amp / (1.0 + np.exp(-z))) - LOG_EPS
+    return render_pixels
+
+
+def test_per_pixel_sampling_of_one_signal_everywhere_is_the_image_mode():
+    """Every pixel the same signal: each pixel's decisions are the image's, so are the events."""
+    from evdnerf_ros.sim.sampling import simulate_pixels
+
+    edge = SigmoidEdge(n=1)
+    one = _edge_pixels(edge)
+    a, sa = simulate_renderer(lambda t: np.full((3, 4), one(np.array([t]), np.array([0]))[0]), 0,
+                              100_000_000, EventGenerator(4, 3), min_step_ns=100_000, max_step_ns=10_000_000)
+    b, sb = simulate_pixels(lambda t, pix: one(t, np.zeros_like(pix)), 0, 100_000_000, EventGenerator(4, 3),
+                            min_step_ns=100_000, max_step_ns=10_000_000)
+    assert a.size > 0 and a.tobytes() == b.tobytes()
+    assert (sa.renders, sa.frames_fed, sa.smallest_step_ns) == (sb.renders, sb.frames_fed, sb.smallest_step_ns)
+    assert sb.pixels_rendered == 12 * sb.renders and sb.mode == "per-pixel"
+
+
+def test_per_pixel_sampling_refines_each_pixel_on_its_own():
+    """Each pixel's events are those of the image mode run on that pixel alone (to 1 ns: another
+    pixel's frame splits its segment, and the split point is rounded), for far fewer values."""
+    from evdnerf_ros.sim.sampling import simulate_pixels
+
+    edge = SigmoidEdge(n=12)
+    render_pixels = _edge_pixels(edge)
+    ev, st = simulate_pixels(render_pixels, 0, 100_000_000, EventGenerator(12, 1), min_step_ns=100_000,
+                             max_step_ns=10_000_000)
+    assert st.pixels_rendered < 0.4 * 12 * st.renders          # only the pixels that need a time render it
+    for x in range(12):
+        alone, _ = simulate_renderer(lambda t: render_pixels(np.array([t]), np.array([x]))[None, :], 0,
+                                     100_000_000, EventGenerator(1, 1), min_step_ns=100_000,
+                                     max_step_ns=10_000_000)
+        mine = ev[ev["x"] == x]
+        assert mine.size == alone.size > 0
+        assert np.array_equal(mine["p"], alone["p"])
+        assert np.abs(mine["t"].astype(np.int64) - alone["t"].astype(np.int64)).max() <= 1
+    assert np.all(np.diff(ev["t"].astype(np.int64)) >= 0)
+
+
+def test_per_pixel_sampling_continues_a_stream_and_batches_without_changing_events(monkeypatch):
+    from evdnerf_ros.sim import sampling
+    from evdnerf_ros.sim.sampling import simulate_pixels
+
+    render_pixels = _edge_pixels(SigmoidEdge(n=6))
+    kw = dict(min_step_ns=100_000, max_step_ns=10_000_000)
+    whole, _ = simulate_pixels(render_pixels, 0, 100_000_000, EventGenerator(6, 1), **kw)
+    g = EventGenerator(6, 1)
+    a, _ = simulate_pixels(render_pixels, 0, 50_000_000, g, **kw)       # a top pieces' boundary
+    b, sb = simulate_pixels(render_pixels, 50_000_000, 100_000_000, g, **kw)
+    assert np.concatenate([a, b]).tobytes() == whole.tobytes()
+    assert sb.pixels_rendered < whole.size * 100                       # the start frame is reused
+    monkeypatch.setattr(sampling, "PIXEL_BATCH", 1)                      # one top piece at a time
+    one_by_one, _ = simulate_pixels(render_pixels, 0, 100_000_000, EventGenerator(6, 1), **kw)
+    assert one_by_one.tobytes() == whole.tobytes()
+
+
+def test_per_pixel_sampling_extremes_and_errors():
+    from evdnerf_ros.sim.sampling import simulate_pixels
+
+    edge = SigmoidEdge(n=4)
+    moving = _edge_pixels(edge)
+
+    def scene(t, pix):               # pixels 0-3: the edge; 4: black; 5: HDR constant; 6: HDR ramp
+        out = np.zeros(pix.size)
+        e = pix < 4
+        out[e] = moving(t[e], pix[e])
+        out[pix == 5] = 1e6
+        ramp = pix == 6
+        out[ramp] = 1e5 * np.exp(8.5 * t[ramp] * 1e-9)
+        return out
+
+    ev, st = simulate_pixels(scene, 0, 100_000_000, EventGenerator(7, 1), min_step_ns=100_000,
+                             max_step_ns=10_000_000)
+    counts = np.bincount(ev["x"], minlength=7)
+    assert counts[4] == counts[5] == 0 and counts[:4].min() > 0
+    assert counts[6] == int(8.5 * 0.1 / C)                      # log-linear: exact count at the coarsest step
+    tiny, st = simulate_pixels(scene, 7, 8, EventGenerator(7, 1))    # a 1 ns window: one frame
+    assert st.frames_fed == 1 and st.smallest_step_ns == 1
+    bad_shape = lambda t, pix: np.ones(pix.size + 1)                 # noqa: E731
+    with pytest.raises(InputError, match="render of 2 pixel"):
+        simulate_pixels(bad_shape, 0, 10, EventGenerator(2, 1))
+    nan = lambda t, pix: np.where(t > 5, np.nan, 1.0)                # noqa: E731
+    with pytest.raises(InputError, match="not finite|NaN|finite"):
+        simulate_pixels(nan, 0, 10, EventGenerator(2, 1), min_step_ns=1, max_step_ns=4)
+    with pytest.raises(InputError, match="t_end"):
+        simulate_pixels(scene, 10, 10, EventGenerator(7, 1))
+    with pytest.raises(InputError, match="tolerance_c"):
+        simulate_pixels(scene, 0, 10, EventGenerator(7, 1), tolerance_c=0.0)
+    with pytest.raises(InputError, match="min_step_ns .* larger"):
+        simulate_pixels(scene, 0, 10, EventGenerator(7, 1), min_step_ns=5, max_step_ns=2)
+    g = EventGenerator(7, 1)
+    simulate_pixels(scene, 0, 10, g)
+    with pytest.raises(InputError, match="not at t_start"):
+        simulate_pixels(scene, 20, 30, g)

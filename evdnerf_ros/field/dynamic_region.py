@@ -98,6 +98,18 @@ class DynamicRegion:
         """(N, 3) normalised points -> (N,) bool, True where the scene may change."""
         return grid_lookup(self.mask, x)
 
+    def inner_weight(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3) normalised points -> (N,) float in [0, 1]: 1 deep inside the region, falling
+        linearly to 0 at its boundary (twice the mask's trilinear interpolation between cell
+        centres, less one, clamped).  Continuous: a ray sweeping across the boundary fades."""
+        vol = getattr(self, "_soft_volume", None)
+        if vol is None or vol.device != self.mask.device:
+            # grid_sample reads (D, H, W) = (z, y, x); the mask is indexed [x, y, z]
+            vol = self._soft_volume = self.mask.permute(2, 1, 0).float()[None, None].contiguous()
+        g = x.to(vol.dtype).reshape(1, 1, 1, -1, 3)
+        m = torch.nn.functional.grid_sample(vol, g, mode="bilinear", padding_mode="border", align_corners=False)
+        return (2.0 * m.reshape(-1) - 1.0).clamp(0.0, 1.0)
+
     @torch.no_grad()
     def rays_crossing(self, origins: torch.Tensor, dirs: torch.Tensor, box, *, near: float = 0.0,
                       far: float = float("inf"), chunk: int = 4096) -> torch.Tensor:

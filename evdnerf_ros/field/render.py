@@ -56,6 +56,18 @@ def camera_rays(camera, T_world_cam, supersample: int = 1, device=None):
             torch.as_tensor(d, dtype=torch.float32, device=device))
 
 
+def pixel_rays(camera, poses, which, pixels, device=None):
+    """World-frame rays of single pixels seen from several poses: pixel ``pixels[i]`` (row-major
+    index) from pose ``poses[which[i]]`` ((K, 4, 4) T_world_cam); origins and unit dirs, each
+    (M, 3) float32, each ray as :func:`camera_rays` gives it."""
+    d_cam = camera.ray_directions(1).reshape(-1, 3)[np.asarray(pixels)]      # float64
+    T = np.asarray(poses, dtype=np.float64)[np.asarray(which)]
+    d = np.einsum("mj,mij->mi", d_cam, T[:, :3, :3])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return (torch.as_tensor(np.ascontiguousarray(T[:, :3, 3]), dtype=torch.float32, device=device),
+            torch.as_tensor(d, dtype=torch.float32, device=device))
+
+
 def ray_box_intersect(origins: torch.Tensor, dirs: torch.Tensor, box, near: float = 0.0,
                       far: float = float("inf")):
     """Slab intersection of rays with the box, clipped to [near, far].
@@ -140,7 +152,8 @@ def render_rays(field: DynamicField, origins: torch.Tensor, dirs: torch.Tensor, 
     ``occupancy``: an ``OccupancyGrid`` (or None); samples in empty cells are not
     evaluated (density 0).  ``dynamic``: a ``DynamicRegion`` (or None); ``changes_only``:
     see the module docstring (needs ``dynamic``).  ``flat_background`` (needs ``dynamic``): a
-    flat static world, every sample outside the region empty and every ray ending on this grey
+    flat static world, every sample outside the region empty, the density inside it fading to 0
+    at its boundary (``DynamicRegion.inner_weight``), and every ray ending on this grey
     (``FieldRenderer``'s ``static_world="flat"``).
 
     Returns a dict (or a list of dicts for a list of times) with ``grey`` (N,),
@@ -176,11 +189,15 @@ def render_rays(field: DynamicField, origins: torch.Tensor, dirs: torch.Tensor, 
     else:
         evals = [(None, None)] * len(times)
     bg = background_grey(field, dirs, background) if flat_background is None else float(flat_background)
+    # a flat world's region fades out at its boundary (``DynamicRegion.inner_weight``)
+    fade = dynamic.inner_weight(x[idx]) if flat_background is not None and idx.numel() else None
     out = []
     for dens_v, grey_v in evals:
         sigma = torch.zeros(n * n_samples, dtype=torch.float32, device=origins.device)
         grey = torch.zeros_like(sigma)
         if dens_v is not None:
+            if fade is not None:
+                dens_v = dens_v * fade
             sigma = sigma.index_put((idx,), dens_v)
             grey = grey.index_put((idx,), grey_v)
         sigma = sigma.reshape(n, n_samples)

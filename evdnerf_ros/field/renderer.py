@@ -64,8 +64,8 @@ from ..errors import InputError
 from ..renderer import CameraRenderer
 from .base import as_time_column
 from .occupancy import cells_box
-from .render import (background_grey, camera_rays, flat_background, normalize_points, ray_box_intersect,
-                     sample_along_rays, volume_weights)
+from .render import (background_grey, camera_rays, flat_background, normalize_points, pixel_rays,
+                     ray_box_intersect, sample_along_rays, volume_weights)
 
 #: What a ray sees outside the dynamic region (module docstring).
 STATIC_WORLDS = ("field", "flat")
@@ -88,7 +88,7 @@ class _ChunkPlan:
     """One chunk of rays of one pose: what does not depend on time (module docstring)."""
 
     __slots__ = ("static_rays", "static_grey", "dyn_rays", "dyn_background", "delta", "base_sigma",
-                 "base_grey", "dyn_idx", "feats", "n_static_samples", "n_samples_traced", "n_rays",
+                 "base_grey", "dyn_idx", "dyn_weight", "feats", "n_static_samples", "n_samples_traced", "n_rays", "width",
                  "nbytes")
 
 
@@ -167,11 +167,7 @@ class FieldRenderer(CameraRenderer):
             return self._plan_cache[1:]
         o, d = camera_rays(self.camera, T, device=self.device)
         n = o.shape[0]
-        grey = self.flat_grey if self.flat_grey is not None else background_grey(self.field, d, self.background)
-        backdrop = torch.as_tensor(grey, dtype=torch.float32, device=self.device).expand(n).contiguous()
-        rays = torch.arange(n, device=self.device)
-        if self._skips_rays:
-            rays = rays[self._may_see_cells(o, d)]
+        backdrop, rays = self._backdrop_and_rays(o, d)
         plans = [p for p in (self._plan_chunk(o[j], d[j], j, backdrop[j]) for j in torch.split(rays, self.chunk))
                  if p.n_rays]
         if self.reuse_static and sum(p.nbytes for p in plans) + 4 * n <= PLAN_CACHE_BYTES:
@@ -179,6 +175,17 @@ class FieldRenderer(CameraRenderer):
         else:
             self._plan_cache = None
         return plans, backdrop
+
+    def _backdrop_and_rays(self, o, d):
+        """What each ray sees where it leaves the box (the background, constant or of the ray's
+        direction) and the indices of the rays to trace (``_skips_rays``)."""
+        n = o.shape[0]
+        grey = self.flat_grey if self.flat_grey is not None else background_grey(self.field, d, self.background)
+        backdrop = torch.as_tensor(grey, dtype=torch.float32, device=self.device).expand(n).contiguous()
+        rays = torch.arange(n, device=self.device)
+        if self._skips_rays:
+            rays = rays[self._may_see_cells(o, d)]
+        return backdrop, rays
 
     @property
     def _skips_rays(self) -> bool:
@@ -243,62 +250,60 @@ class FieldRenderer(CameraRenderer):
             self._cells_box_cache = (self._cells_box(),)
         return self._cells_box_cache[0]
 
-    def _plan_chunk(self, o, d, rays, backdrop) -> _ChunkPlan:
+    def _plan_chunk(self, o, d, rays, backdrop, playback: bool = True) -> _ChunkPlan:
         S, dev = self.n_samples, self.device
         t_near, t_far, hit = ray_box_intersect(o, d, self.box, self.near, self.far)
         z, delta = sample_along_rays(t_near, t_far, S)
         k = self._sample_window(o, d, t_near, delta, hit)
-        if k is None:
-            x = normalize_points((o[:, None, :] + d[:, None, :] * z[..., None]).reshape(-1, 3), self.box)
-            valid, is_dyn = self._classify(x, hit[:, None].expand(-1, S).reshape(-1))
-        else:
-            # only the samples that can fall in the cells' box are placed and looked up (the same
-            # points); every other sample of the ray is neither occupied nor, flat, dynamic
-            m, w = k.shape
-            xk = normalize_points((o[:, None, :] + d[:, None, :] * z.gather(1, k)[..., None]).reshape(-1, 3), self.box)
-            vk, dk = self._classify(xk, hit[:, None].expand(-1, w).reshape(-1))
-            x = xk.new_zeros(m, S, 3).scatter_(1, k[..., None].expand(-1, -1, 3), xk.reshape(m, w, 3)).reshape(-1, 3)
-            valid, is_dyn = (torch.zeros(m, S, dtype=torch.bool, device=dev).scatter_(1, k, a.reshape(m, w)).reshape(-1)
-                             for a in (vk, dk))
+        if k is not None:
+            # only the samples that can fall in the cells' box are placed, looked up and composited
+            # (the same points): every other sample of the ray is neither occupied nor, flat,
+            # dynamic, so it has no density and leaves the ray's sums as they are
+            z = z.gather(1, k)
+        W = z.shape[1]
+        x = normalize_points((o[:, None, :] + d[:, None, :] * z[..., None]).reshape(-1, 3), self.box)
+        valid, is_dyn = self._classify(x, hit[:, None].expand(-1, W).reshape(-1))
         if self._skips_rays:
             # trace only rays with a sample that can show anything: an occupied one (with a flat
             # static world, a dynamic one); every other ray sees exactly the backdrop
-            seen = (is_dyn if self.flat_grey is not None else valid).reshape(-1, S).any(dim=1)
+            seen = (is_dyn if self.flat_grey is not None else valid).reshape(-1, W).any(dim=1)
             if not bool(seen.all()):
                 keep = torch.nonzero(seen).squeeze(1)
                 rays, backdrop, delta = rays[keep], backdrop[keep], delta[keep]
-                x, valid, is_dyn = (a.reshape(-1, S, *a.shape[1:])[keep].reshape(-1, *a.shape[1:])
+                x, valid, is_dyn = (a.reshape(-1, W, *a.shape[1:])[keep].reshape(-1, *a.shape[1:])
                                     for a in (x, valid, is_dyn))
         m = rays.numel()
         # a flat static world: nothing outside the dynamic region, no static sample to evaluate
         s_idx = torch.nonzero(valid & ~is_dyn).squeeze(1) if self.flat_grey is None else x.new_zeros(0, dtype=torch.long)
-        sigma = torch.zeros(m * S, dtype=torch.float32, device=dev)
+        sigma = torch.zeros(m * W, dtype=torch.float32, device=dev)
         grey = torch.zeros_like(sigma)
         if s_idx.numel():
             dens, g = self.field.decode_static(self.field.space_features(x[s_idx]))
             sigma = sigma.index_put((s_idx,), dens.float())
             grey = grey.index_put((s_idx,), g.float())
-        ray_dyn = is_dyn.reshape(m, S).any(dim=1)
+        ray_dyn = is_dyn.reshape(m, W).any(dim=1)
         p = _ChunkPlan()
         p.n_static_samples = int(s_idx.numel())
-        p.n_samples_traced = m * S
+        p.n_samples_traced = m * S        # what a full render of these rays evaluates
+        p.width = W
         p.n_rays = m
         st = torch.nonzero(~ray_dyn).squeeze(1)
         p.static_rays = rays[st]
-        p.static_grey = _composite(sigma.reshape(m, S)[st], grey.reshape(m, S)[st], delta[st], backdrop[st])
+        p.static_grey = _composite(sigma.reshape(m, W)[st], grey.reshape(m, W)[st], delta[st], backdrop[st])
         dy = torch.nonzero(ray_dyn).squeeze(1)
         p.dyn_rays = rays[dy]
         p.dyn_background = backdrop[dy]
         p.delta = delta[dy]
-        p.base_sigma = sigma.reshape(m, S)[dy].reshape(-1)
-        p.base_grey = grey.reshape(m, S)[dy].reshape(-1)
-        dmask = is_dyn.reshape(m, S)[dy].reshape(-1)
+        p.base_sigma = sigma.reshape(m, W)[dy].reshape(-1)
+        p.base_grey = grey.reshape(m, W)[dy].reshape(-1)
+        dmask = is_dyn.reshape(m, W)[dy].reshape(-1)
         p.dyn_idx = torch.nonzero(dmask).squeeze(1)
-        xd = x.reshape(m, S, 3)[dy].reshape(-1, 3)[p.dyn_idx]
+        xd = x.reshape(m, W, 3)[dy].reshape(-1, 3)[p.dyn_idx]
         p.feats = None
+        p.dyn_weight = self.dynamic.inner_weight(xd) if self.flat_grey is not None and xd.shape[0] else None
         if p.dyn_idx.numel():
             p.feats = self.field.space_features(xd)
-            if hasattr(self.field, "playback_features"):     # planes: time rows read by gathers
+            if playback and hasattr(self.field, "playback_features"):     # planes: time rows read by gathers
                 p.feats = self.field.playback_features(p.feats)
         p.nbytes = (_feature_bytes(p.feats) + 4 * (2 * p.base_sigma.numel() + 2 * p.delta.numel())
                     + 8 * (p.dyn_idx.numel() + p.dyn_rays.numel() + p.static_rays.numel()) + 4 * p.static_grey.numel())
@@ -330,6 +335,8 @@ class FieldRenderer(CameraRenderer):
                         dens, g = self.field.decode_at(p.feats, tn)
                     else:
                         dens, g = self.field.decode(p.feats, as_time_column(tn, p.dyn_idx.numel(), self.device))
+                    if p.dyn_weight is not None:
+                        dens = dens * p.dyn_weight
                     sigma = sigma.index_put((p.dyn_idx,), dens.float())
                     grey = grey.index_put((p.dyn_idx,), g.float())
                     self.samples_evaluated += int(p.dyn_idx.numel())
@@ -339,6 +346,56 @@ class FieldRenderer(CameraRenderer):
         self.rays_total += n
         img = out.reshape(cam.height, cam.width).cpu().numpy().astype(np.float32)
         return np.maximum(img, 0.0)
+
+    def render_pixels(self, poses, t_ns, which, pixels) -> np.ndarray:
+        """(M,) float32 linear intensity (>= 0) of row-major pixel ``pixels[i]`` seen from pose
+        ``poses[which[i]]`` ((K, 4, 4) T_world_cam) at scene time ``t_ns[which[i]]`` ((K,) int64):
+        many poses and times in one batch of rays, each pixel as :meth:`render` gives it (up to
+        float rounding).  The per-pixel sampler's renderer (``sim.sampling.simulate_pixels``):
+        it has no plan to keep, every sample is evaluated at its ray's own time."""
+        from ..geometry.poses import check_rigid
+
+        poses = check_rigid(np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4), "T_world_cam")
+        which = np.asarray(which, dtype=np.int64)
+        pixels = np.asarray(pixels, dtype=np.int64)
+        n_pix = self.camera.width * self.camera.height
+        if which.shape != pixels.shape or pixels.ndim != 1:
+            raise InputError(f"{self.source}: pixels and pose indices must be two 1-D arrays of one length "
+                             f"(got {pixels.shape} and {which.shape})")
+        if pixels.size and (pixels.min() < 0 or pixels.max() >= n_pix or which.min() < 0
+                            or which.max() >= poses.shape[0]):
+            raise InputError(f"{self.source}: a pixel index is outside 0..{n_pix - 1} or a pose index outside "
+                             f"0..{poses.shape[0] - 1}")
+        tn = torch.tensor([self.normalized_time(t) for t in np.asarray(t_ns).reshape(-1).tolist()],
+                          dtype=torch.float32, device=self.device)
+        if tn.numel() != poses.shape[0]:
+            raise InputError(f"{self.source}: {tn.numel()} times for {poses.shape[0]} poses")
+        with torch.no_grad():
+            o, d = pixel_rays(self.camera, poses, which, pixels, device=self.device)
+            ray_time = tn[torch.as_tensor(which, device=self.device)]
+            out, rays = self._backdrop_and_rays(o, d)
+            out = out.clone()
+            for j in torch.split(rays, self.chunk):
+                p = self._plan_chunk(o[j], d[j], j, out[j], playback=False)
+                self.samples_total += p.n_samples_traced
+                self.rays_rendered += p.n_rays
+                if p.static_rays.numel():
+                    out[p.static_rays] = p.static_grey
+                if not p.dyn_rays.numel():
+                    continue
+                sigma, grey = p.base_sigma, p.base_grey
+                if p.dyn_idx.numel():
+                    t = ray_time[p.dyn_rays][torch.div(p.dyn_idx, p.width, rounding_mode="floor")]
+                    dens, g = self.field.decode(p.feats, t[:, None])
+                    if p.dyn_weight is not None:
+                        dens = dens * p.dyn_weight
+                    sigma = sigma.index_put((p.dyn_idx,), dens.float())
+                    grey = grey.index_put((p.dyn_idx,), g.float())
+                    self.samples_evaluated += int(p.dyn_idx.numel())
+                k = p.dyn_rays.numel()
+                out[p.dyn_rays] = _composite(sigma.reshape(k, -1), grey.reshape(k, -1), p.delta, p.dyn_background)
+        self.rays_total += int(pixels.size)
+        return np.maximum(out.cpu().numpy().astype(np.float32), 0.0)
 
 
 def _composite(sigma, grey, delta, background: torch.Tensor):

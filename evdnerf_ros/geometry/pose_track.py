@@ -40,14 +40,19 @@ class PoseTrack:
         return int(self.t[0]), int(self.t[-1])
 
     def __call__(self, t_ns) -> np.ndarray:
-        t = int(t_ns)
-        if not self.t[0] <= t <= self.t[-1]:
-            raise InputError(f"{self.source}: time {t} ns is outside the trajectory "
+        return self.poses([int(t_ns)])[0]
+
+    def poses(self, t_ns) -> np.ndarray:
+        """(K, 4, 4) poses at the times ``t_ns`` ((K,) int64 ns, inside the track)."""
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        outside = np.flatnonzero((t < self.t[0]) | (t > self.t[-1]))
+        if outside.size:
+            raise InputError(f"{self.source}: time {int(t[outside[0]])} ns is outside the trajectory "
                              f"[{int(self.t[0])}, {int(self.t[-1])}] ns")
-        i = int(np.searchsorted(self.t, t, "right")) - 1
-        i = min(i, self.t.size - 2)
-        u = (t - int(self.t[i])) / float(int(self.t[i + 1]) - int(self.t[i]))
-        T = np.eye(4)
-        T[:3, :3] = quat_to_matrix(slerp(self.q[i], self.q[i + 1], u))
-        T[:3, 3] = self.p[i] + u * (self.p[i + 1] - self.p[i])
+        i = np.minimum(np.searchsorted(self.t, t, "right") - 1, self.t.size - 2)
+        u = (t - self.t[i]) / (self.t[i + 1] - self.t[i]).astype(np.float64)
+        T = np.zeros((t.size, 4, 4))
+        T[:, 3, 3] = 1.0
+        T[:, :3, :3] = quat_to_matrix(slerp(self.q[i], self.q[i + 1], u))
+        T[:, :3, 3] = self.p[i] + u[:, None] * (self.p[i + 1] - self.p[i])
         return T

@@ -64,11 +64,12 @@ def quat_from_axis_angle(axis, angle_rad) -> np.ndarray:
 
 
 def quat_to_matrix(q) -> np.ndarray:
-    w, x, y, z = quat_normalize(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    """(..., 4) quaternions -> (..., 3, 3) rotation matrices."""
+    w, x, y, z = np.moveaxis(quat_normalize(q), -1, 0)
+    return np.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1).reshape(*w.shape, 3, 3)
 
 
 def matrix_to_quat(R) -> np.ndarray:
@@ -101,11 +102,11 @@ def quat_from_euler_deg(angles_deg) -> np.ndarray:
 
 
 def slerp(q0, q1, u) -> np.ndarray:
-    """Spherical linear interpolation along the shortest arc; u scalar or array (...)."""
+    """Spherical linear interpolation along the shortest arc: one pair (4,) with u scalar or an
+    array (...), or pairs (..., 4) with u (...)."""
     q0 = quat_normalize(q0)
     q1 = quat_normalize(q1)
-    if np.dot(q0, q1) < 0:
-        q1 = -q1
+    q1 = np.where(np.sum(q0 * q1, axis=-1, keepdims=True) < 0, -q1, q1)
     rel = quat_log(quat_mul(quat_conj(q0), q1))
     u = np.asarray(u, dtype=np.float64)
     return quat_mul(q0, quat_exp(rel * u[..., None]))

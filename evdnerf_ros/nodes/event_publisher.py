@@ -73,6 +73,10 @@ PARAMETERS = [
     Param("tolerance_c", 0.1, "adaptive sampling: allowed midpoint deviation from linear, in units of C", min=1e-6),
     Param("min_step_ns", 100_000, "adaptive sampling: finest step (ns)", min=1),
     Param("max_step_ns", 10_000_000, "adaptive sampling: coarsest step (ns)", min=1),
+    Param("per_pixel", "auto", "trained field, adaptive sampling: true refines each pixel's time steps on its own and "
+      "renders the pixels of many times in one batch; false renders whole images, every pixel at every time any "
+      "pixel needs; auto: true when the camera moves during the published span (a static camera's whole images "
+      "reuse their static part instead)", choices=("auto", "true", "false"), read_only=True),
     Param("render_rate_hz", 1000.0, "fixed sampling rate when adaptive is false", min=1e-3),
     Param("leave_out", True, "render only pixels whose rays can hit something (scene primitives' screen boxes / the "
       "field's occupancy grid)"),
@@ -121,6 +125,7 @@ class PublishReport:
     wall_seconds: float = 0.0
     render_seconds: float = 0.0
     renders: int = 0
+    pixels_rendered: int = 0     # per-pixel sampling: pixel values rendered (whole images: 0)
     frames_fed: int = 0
     rays_total: int = 0          # render work without leave-out (scene: ray-primitive tests; field: rays)
     rays_rendered: int = 0       # render work done (same unit)
@@ -283,6 +288,13 @@ class EventPublisher(Node):
         t_scene = int(t_ns) - self.t0 + int(round(self.params["scene_time_offset"] * NS))
         return self.source(self.camera_pose(t_ns), t_scene)
 
+    def render_pixels(self, t_ns: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """Row-major pixels at trajectory times, many in one batch (``sim.sampling.simulate_pixels``)."""
+        times, which = np.unique(t_ns, return_inverse=True)
+        poses = self.track.poses(times) @ self.T_robot_cam
+        t_scene = times - self.t0 + int(round(self.params["scene_time_offset"] * NS))
+        return self.source.render_pixels(poses, t_scene, which, pixels)
+
     # ----- run
     def _camera_info(self, stamp_ns: int) -> None:
         from ..io.messages import camera_info
@@ -350,7 +362,7 @@ class EventPublisher(Node):
         as published (evt encodings: quantised to whole microseconds)."""
         from ..events.codecs import quantize_to_us
         from ..io.packetizer import Packetizer
-        from ..sim.sampling import simulate_renderer
+        from ..sim.sampling import simulate_pixels, simulate_renderer
 
         p = self.params
         rep = self.report
@@ -365,6 +377,8 @@ class EventPublisher(Node):
         info_every = int(round(p["camera_info_period"] * NS))
         factor = p["realtime_factor"]
         evt = p["encoding"] in ("evt3", "evt2")
+        per_pixel = p["adaptive"] and hasattr(self.source, "render_pixels") and (
+            p["per_pixel"] == "true" or (p["per_pixel"] == "auto" and self._camera_moves()))
         self.logger.info(f"publishing {(self.t1 - self.t0) / NS:.3f} s of events from the {self.source.kind} on "
                          f"{self.events_pub.topic} ({p['encoding']}, {self.camera.width}x{self.camera.height}"
                          f"{', DDS domain %d' % self.dds.domain_id if self.dds is not None else ', no DDS'}"
@@ -384,14 +398,20 @@ class EventPublisher(Node):
                 self._camera_info(t)
                 next_info = t + info_every
             info_subs = subs
-            events, st = simulate_renderer(
-                self.render, t, tb, self.generator, mode="adaptive" if p["adaptive"] else "fixed",
-                rate_hz=p["render_rate_hz"], tolerance_c=p["tolerance_c"],
-                min_step_ns=p["min_step_ns"], max_step_ns=min(p["max_step_ns"], tb - t))
+            if per_pixel:
+                events, st = simulate_pixels(
+                    self.render_pixels, t, tb, self.generator, tolerance_c=p["tolerance_c"],
+                    min_step_ns=p["min_step_ns"], max_step_ns=min(p["max_step_ns"], tb - t))
+            else:
+                events, st = simulate_renderer(
+                    self.render, t, tb, self.generator, mode="adaptive" if p["adaptive"] else "fixed",
+                    rate_hz=p["render_rate_hz"], tolerance_c=p["tolerance_c"],
+                    min_step_ns=p["min_step_ns"], max_step_ns=min(p["max_step_ns"], tb - t))
             if evt and events.size:
                 events = quantize_to_us(events, time_base_ns=self.t0)
             rep.render_seconds += st.render_seconds
             rep.renders += st.renders
+            rep.pixels_rendered += st.pixels_rendered
             rep.frames_fed += st.frames_fed
             if factor > 0:
                 self.sleep(wall0 + (tb - self.t0) / NS / factor - time.perf_counter())

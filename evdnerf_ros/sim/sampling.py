@@ -62,6 +62,8 @@ DEFAULT_MAX_STEP_NS = 33_333_333
 DEFAULT_MIN_STEP_NS = 1_000
 #: Default motion guard: an accepted piece lets nothing move further than this (pixels).
 DEFAULT_MAX_TRAVEL_PX = 1.0
+#: Per-pixel mode: top pieces are refined together while they hold at most this many pixels.
+PIXEL_BATCH = 1 << 18
 
 
 @dataclass
@@ -77,6 +79,7 @@ class SamplingStats:
     smallest_step_ns: int = 0   # shortest interval fed to the generator
     largest_step_ns: int = 0    # longest interval fed to the generator
     max_deviation_c: float = 0.0  # largest accepted midpoint deviation, in units of C
+    pixels_rendered: int = 0    # per-pixel mode: pixel values rendered (image modes: 0)
     events: int = 0
     render_seconds: float = 0.0
     wall_seconds: float = 0.0
@@ -87,6 +90,20 @@ def _positive_int(name, value) -> int:
     if v <= 0:
         raise InputError(f"{name} must be > 0 ns (got {value})")
     return v
+
+
+def _adaptive_settings(tolerance_c, max_dlog_c, min_step_ns, max_step_ns) -> tuple[float, int, int]:
+    """Checked (tolerance, min step, max step) of adaptive sampling."""
+    tol = float(tolerance_c)
+    if not np.isfinite(tol) or tol <= 0:
+        raise InputError(f"tolerance_c must be > 0 (got {tolerance_c!r})")
+    if max_dlog_c is not None and (not np.isfinite(max_dlog_c) or max_dlog_c <= 0):
+        raise InputError(f"max_dlog_c must be > 0 or None (got {max_dlog_c!r})")
+    min_step = _positive_int("min_step_ns", min_step_ns)
+    max_step = _positive_int("max_step_ns", max_step_ns)
+    if min_step > max_step:
+        raise InputError(f"min_step_ns {min_step} is larger than max_step_ns {max_step}")
+    return tol, min_step, max_step
 
 
 def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
@@ -169,15 +186,7 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
             prev = t
         stats.intervals = stats.frames_fed
     else:
-        tol = float(tolerance_c)
-        if not np.isfinite(tol) or tol <= 0:
-            raise InputError(f"tolerance_c must be > 0 (got {tolerance_c!r})")
-        if max_dlog_c is not None and (not np.isfinite(max_dlog_c) or max_dlog_c <= 0):
-            raise InputError(f"max_dlog_c must be > 0 or None (got {max_dlog_c!r})")
-        min_step = _positive_int("min_step_ns", min_step_ns)
-        max_step = _positive_int("max_step_ns", max_step_ns)
-        if min_step > max_step:
-            raise InputError(f"min_step_ns {min_step} is larger than max_step_ns {max_step}")
+        tol, min_step, max_step = _adaptive_settings(tolerance_c, max_dlog_c, min_step_ns, max_step_ns)
         if travel_px is not None:
             travel_limit = float(max_travel_px)
             if not np.isfinite(travel_limit) or travel_limit <= 0:
@@ -239,3 +248,154 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
     stats.events = int(events.size)
     stats.wall_seconds = time.perf_counter() - wall0
     return events, stats
+
+
+def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray], t_start, t_end,
+                    generator: EventGenerator, *, tolerance_c: float = 0.1, max_dlog_c: float | None = None,
+                    min_step_ns: int = DEFAULT_MIN_STEP_NS, max_step_ns: int = DEFAULT_MAX_STEP_NS,
+                    progress: Callable[[int], None] | None = None):
+    """Adaptive sampling refined pixel by pixel; ``(events, SamplingStats)`` as
+    :func:`simulate_renderer`.
+
+    ``render_pixels(t_ns, pixels)`` -> linear intensity of row-major pixel ``pixels[i]`` at
+    time ``t_ns[i]`` (both (M,) int64; many times in one call).  The grid, the top pieces and
+    the midpoint test are those of the ``"adaptive"`` mode, applied to each pixel's own log
+    signal: a pixel whose piece passes keeps it while its neighbours are split further, and
+    every level of the bisection (all failed pixels' midpoints, at many times) is one call.  So
+    a moving camera, where every image fails somewhere (each moving edge), renders only the
+    pixels along the edges at the finer levels, in a few batched calls instead of one image per
+    grid time.  Every rendered value is fed (as the image mode feeds ``a -> m -> b``): the
+    generator gets one frame per time any pixel was rendered at, each pixel linear between its
+    own rendered times, so its events are those of its own piecewise-linear signal.  Each
+    pixel's signal is accepted by the same bound as an image mode's piece (``tolerance_c``);
+    it is not refined where only *other* pixels needed it (the difference from that mode).
+    ``renders`` counts the distinct times rendered, ``pixels_rendered`` the values.
+    """
+    wall0 = time.perf_counter()
+    t_start = _as_time(t_start, "t_start")
+    t_end = _as_time(t_end, "t_end")
+    if t_end <= t_start:
+        raise InputError(f"t_end {t_end} ns must be after t_start {t_start} ns")
+    tol, min_step, max_step = _adaptive_settings(tolerance_c, max_dlog_c, min_step_ns, max_step_ns)
+    stats = SamplingStats(mode="per-pixel")
+    n_pix = generator.n_pixels
+    every = np.arange(n_pix)
+    c_ref = min(generator.c_pos, generator.c_neg)
+    limit = tol * c_ref
+    dlog_limit = None if max_dlog_c is None else float(max_dlog_c) * c_ref
+    n = -(-(t_end - t_start) // min_step)          # grid points, as in the image mode
+
+    def times(j: np.ndarray) -> np.ndarray:
+        return np.where(j >= n, t_end, t_start + j * min_step).astype(np.int64)
+
+    def render_log(j: np.ndarray, pix: np.ndarray) -> np.ndarray:
+        t = times(j)
+        where = f"render of {pix.size} pixel(s) at t={int(t.min())}..{int(t.max())} ns"
+        r0 = time.perf_counter()
+        vals = np.asarray(render_pixels(t, pix))
+        stats.render_seconds += time.perf_counter() - r0
+        if vals.shape != pix.shape:
+            raise InputError(f"{where}: got values of shape {vals.shape}, expected {pix.shape}")
+        stats.renders += int(np.unique(j).size)
+        stats.pixels_rendered += int(pix.size)
+        return log_intensity(vals, generator.eps, where=where)
+
+    if generator.initialized:
+        if generator.t_ns != t_start:
+            raise InputError(f"generator is at t={generator.t_ns} ns, not at t_start={t_start} ns; "
+                             "continue from its time or use a fresh generator")
+        L_now = generator.last_log().ravel()
+    else:
+        L_now = render_log(np.zeros(n_pix, np.int64), every)
+        generator.reset_log(L_now.reshape(generator.height, generator.width), t_start)
+
+    chunks: list[np.ndarray] = []
+    top = max_step // min_step
+    group = top * max(1, PIXEL_BATCH // n_pix)     # grid steps of the top pieces refined together
+    for g0 in range(0, n, group):
+        firsts = np.arange(g0, min(g0 + group, n), top)
+        lasts = np.minimum(firsts + top, n)
+        pix, lo, hi = np.tile(every, firsts.size), np.repeat(firsts, n_pix), np.repeat(lasts, n_pix)
+        mid = (lo + hi) // 2
+        wide = hi - lo > 1
+        both = render_log(np.concatenate([hi, mid[wide]]), np.concatenate([pix, pix[wide]]))
+        kp, kj, kL = [every, pix, pix[wide]], [lo[:n_pix], hi, mid[wide]], [L_now, both]   # knots: all rendered
+        Lb = both[:pix.size]
+        La = np.concatenate([L_now, Lb[:-n_pix]])
+        stats.at_min_step += int((~wide).sum())
+        stats.intervals += int((~wide).sum())
+        pix, lo, hi, La, Lb, Lm = pix[wide], lo[wide], hi[wide], La[wide], Lb[wide], both[pix.size:]
+        while pix.size:
+            mid = (lo + hi) // 2
+            ta, tb, tm = times(lo), times(hi), times(mid)
+            w = (tm - ta) / (tb - ta)
+            dev = np.abs(Lm - (La + (Lb - La) * w))
+            ok = dev < limit
+            if dlog_limit is not None:
+                ok &= np.abs(Lb - La) <= dlog_limit
+            if ok.any():
+                stats.intervals += int(ok.sum())
+                stats.max_deviation_c = max(stats.max_deviation_c, float(dev[ok].max()) / c_ref)
+            bad = ~ok
+            # the failed pieces' halves; one grid step is the finest there is
+            lo, hi = np.concatenate([lo[bad], mid[bad]]), np.concatenate([mid[bad], hi[bad]])
+            pix = np.concatenate([pix[bad], pix[bad]])
+            La, Lb = np.concatenate([La[bad], Lm[bad]]), np.concatenate([Lm[bad], Lb[bad]])
+            finest = hi - lo == 1
+            stats.at_min_step += int(finest.sum())
+            stats.intervals += int(finest.sum())
+            split = ~finest
+            pix, lo, hi, La, Lb = pix[split], lo[split], hi[split], La[split], Lb[split]
+            if pix.size:
+                Lm = render_log((lo + hi) // 2, pix)
+                kp.append(pix)
+                kj.append((lo + hi) // 2)
+                kL.append(Lm)
+        L_now = _feed_knots(generator, np.concatenate(kp), np.concatenate(kj), np.concatenate(kL),
+                            times, chunks, stats, progress)
+    events = np.concatenate(chunks) if chunks else empty_events()
+    stats.events = int(events.size)
+    stats.wall_seconds = time.perf_counter() - wall0
+    return events, stats
+
+
+def _feed_knots(generator: EventGenerator, pix, j, L, times, chunks, stats, progress) -> np.ndarray:
+    """Feed the generator one frame per distinct grid index of the knots ``(pix, j, L)`` after
+    the first (every pixel has a knot at the first and the last), each pixel linear between
+    its own knots; return the last frame (flat)."""
+    by_pixel = np.lexsort((j, pix))
+    nxt = np.empty_like(by_pixel)                # each knot's successor along its pixel
+    nxt[by_pixel[:-1]] = by_pixel[1:]
+    nxt[by_pixel[-1]] = by_pixel[-1]
+    ends = pix[by_pixel[1:]] != pix[by_pixel[:-1]]
+    nxt[by_pixel[:-1][ends]] = by_pixel[:-1][ends]  # a pixel's last knot has none
+    by_time = np.argsort(j, kind="stable")
+    rows, starts = np.unique(j[by_time], return_index=True)
+    bounds = np.append(starts, by_time.size)
+    t_rows = times(rows)
+    n_pix = generator.n_pixels
+    left_t, left_L = np.empty(n_pix, np.int64), np.empty(n_pix)
+    right_t, right_L = np.empty(n_pix, np.int64), np.empty(n_pix)
+    shape = (generator.height, generator.width)
+    frame = None
+    for r in range(rows.size):
+        k = by_time[bounds[r]:bounds[r + 1]]
+        p, s = pix[k], nxt[k]
+        left_t[p], left_L[p] = t_rows[r], L[k]
+        right_t[p], right_L[p] = times(j[s]), L[s]
+        if r == 0:
+            continue
+        span = right_t - left_t
+        frac = (t_rows[r] - left_t) / np.where(span > 0, span, 1)
+        frame = left_L + (right_L - left_L) * frac    # exact where rendered (frac 0)
+        ev = generator.step_log(frame.reshape(shape), int(t_rows[r]))
+        if ev.size:
+            chunks.append(ev)
+        stats.frames_fed += 1
+        dt = int(t_rows[r] - t_rows[r - 1])
+        if stats.frames_fed == 1 or dt < stats.smallest_step_ns:
+            stats.smallest_step_ns = dt
+        stats.largest_step_ns = max(stats.largest_step_ns, dt)
+        if progress is not None:
+            progress(int(t_rows[r]))
+    return frame
