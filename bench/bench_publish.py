@@ -22,6 +22,12 @@ Writes ``publish.json`` and ``publish.png`` into ``--out``.
   (scene time 0-100 ms); for a trained field the occupancy-grid ray mask on/off (a
   randomly initialised planes field with a half-empty occupancy grid, 64x64: rays rendered
   and wall time; images identical).
+* **Published against true events** (``--only published``): a fork run trained 2 minutes at
+  64x64 publishes along a novel static view and along its orbit; each publisher lever (node
+  parameters: leave-out, static reuse, static world, per-pixel sampling, min step, chunk,
+  baking, tolerance) against the simulator's events along the same path (event-image PSNR, zero
+  floor, true render, counts per polarity, first-event timing) and its RTF; RTF against
+  resolution for the static view.
 * **DDS throughput**: a writer process and a reader process on loopback (Cyclone DDS,
   localhost only), EventPacket messages of 64 KiB and 1 MiB, reliable keep-last 64; the
   reader deserialises every message (rosbags on the fast path, IdlStruct on the slow
@@ -173,10 +179,16 @@ LEVERS = {"plain (every ray, every sample)": {"leave_out": False, "reuse_static"
           "baked 32": {"bake_resolution": 32}, "baked 64": {"bake_resolution": 64},
           "baked 96": {"bake_resolution": 96},
           "static reuse, tolerance 0.5 C": {"tolerance_c": 0.5},
-          "static reuse, tolerance 0.02 C": {"tolerance_c": 0.02}}
+          "static reuse, tolerance 0.02 C": {"tolerance_c": 0.02},
+          "whole images": {"per_pixel": "false"},
+          "min step 2 ms": {"min_step_ns": 2_000_000},
+          "chunk 50 ms": {"chunk": 0.05},
+          "min step 1 ms, chunk 50 ms": {"min_step_ns": 1_000_000, "chunk": 0.05},
+          "whole images, min step 5 ms": {"per_pixel": "false", "min_step_ns": 5_000_000}}
 #: levers that are the default on one path (static_world auto: field for a static camera, flat
-#: for a moving one) or meaningless there (the midpoint tolerance with a moving camera)
-SKIP = {"static": ("static world field",), "orbit": ("static world flat", "tolerance")}
+#: for a moving one; per_pixel auto: whole images for a static camera, per pixel for a moving
+#: one) or meaningless there (the static part's tolerance levers with a moving camera)
+SKIP = {"static": ("static world field", "whole images"), "orbit": ("static world flat", "tolerance")}
 #: levers of the RTF-against-resolution sweep (static camera)
 RESOLUTION_LEVERS = ("static reuse (default)", "baked 64")
 

@@ -211,6 +211,7 @@ def published_vs_true(run_dir, train_h5=None, *, n_windows: int = 32, static: bo
                                              ref_m["continuous"]["psnr"]),
               "counts": counts, "first_events": first_event_timing(pub, true, edges, cam.width, cam.height),
               "publisher": {"wall_s": rep.wall_seconds, "rtf": rep.rtf, "renders": rep.renders,
+                            "pixels_rendered": rep.pixels_rendered,
                             "render_s": rep.render_seconds, "rays_rendered": rep.rays_rendered,
                             "rays_total": rep.rays_total, "samples_evaluated": rep.samples_evaluated,
                             "samples_total": rep.samples_total, "events": rep.events,

@@ -20,8 +20,8 @@ rounding of batched matrix products, ~1e-7; the tests hold them to 1e-6):
   without a grid, the scene box); every other pixel is the background, exactly what the
   full render gives there.  Rays are first tested against the box around the cells they
   must reach (the occupied ones; with a flat static world, the dynamic region's), and of a
-  traced ray only the samples that can fall in that box are placed and looked up (the same
-  points; a moving camera's plan 13 % faster on the fork).
+  traced ray only the samples that can fall in that box are placed, looked up and composited
+  (the same points; the others have no density; a moving camera's plan 13 % faster on the fork).
 - ``reuse_static``: keep the plan while the camera pose does not change (a static camera;
   poses equal within ``POSE_SAME`` = 1e-9, float rounding of an interpolated track):
   the static rays and samples are then evaluated once, and each new time costs only the
@@ -36,7 +36,9 @@ rounding of batched matrix products, ~1e-7; the tests hold them to 1e-6):
   default): the static field and the learned background, as trained and evaluated.
   ``"flat"``: nothing there (density 0) in front of one constant grey (the learned
   background's mean over the sphere, else ``background``), so only rays that cross the
-  dynamic region are traced and no static sample is evaluated. Static training views say
+  dynamic region are traced and no static sample is evaluated; inside the region the density
+  fades to 0 at its boundary (``DynamicRegion.inner_weight``), so that a ray sweeping across a
+  voxel face changes continuously instead of popping. Static training views say
   next to nothing about the static world (it makes no events in them): a moving camera
   sees the static field's fog and the background's noise sweep past as events the true
   scene does not have (4x the true events on the fork's orbit), and ``"flat"`` leaves them
@@ -45,6 +47,10 @@ rounding of batched matrix products, ~1e-7; the tests hold them to 1e-6):
 - ``field`` may also be a :class:`~evdnerf_ros.field.baked.BakedField` (the ``bake``
   setting of :meth:`TrainedRun.renderer`): an explicit grid played back by interpolation, an
   approximation whose error the publish benchmark measures.
+
+``render_pixels`` draws single pixels of many poses and times in one batch (the publisher's
+per-pixel sampling, ``sim.sampling.simulate_pixels``): no plan is kept, each dynamic sample is
+decoded at its ray's own time.
 
 ``rays_rendered`` / ``rays_total`` count rays traced (leave-out) / rays of the images, per call;
 ``samples_evaluated`` / ``samples_total`` count field evaluations done / what a full render of

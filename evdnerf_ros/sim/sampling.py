@@ -36,6 +36,10 @@ step, and 4-8 % at 100-500 ms):
   in ``publish``) it is ``max_step_ns`` that must stay below the shortest there-and-back
   motion of the scene.
 
+``simulate_pixels`` is the adaptive mode refined pixel by pixel, for renderers that can draw
+single pixels at many times in one call (a trained field): the same grid and midpoint test on
+each pixel's own signal, each bisection level one call (see its docstring).
+
 The event generator interpolates log intensity linearly between the frames it gets, so
 the midpoint test bounds exactly the error it makes: for a smooth signal the log error
 between fed frames is about a quarter of the accepted midpoint deviation, and the timing
@@ -261,7 +265,8 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
     time ``t_ns[i]`` (both (M,) int64; many times in one call).  The grid, the top pieces and
     the midpoint test are those of the ``"adaptive"`` mode, applied to each pixel's own log
     signal: a pixel whose piece passes keeps it while its neighbours are split further, and
-    every level of the bisection (all failed pixels' midpoints, at many times) is one call.  So
+    every level of the bisection (all failed pixels' midpoints, at many times; top pieces are
+    refined together up to ``PIXEL_BATCH`` pixels) is one call.  So
     a moving camera, where every image fails somewhere (each moving edge), renders only the
     pixels along the edges at the finer levels, in a few batched calls instead of one image per
     grid time.  Every rendered value is fed (as the image mode feeds ``a -> m -> b``): the
