@@ -140,24 +140,32 @@ def test_publisher_sources_are_renderers(tmp_path):
 
 
 
-@pytest.mark.parametrize("world", ["field", "flat"])
-def test_field_renderer_places_only_samples_near_the_cells_and_draws_the_same(world):
-    """With an occupancy grid (and, flat, a dynamic region) smaller than the box, only the samples
-    of each ray that can fall in the box around their cells are placed and looked up: the
-    images at a moving camera's poses equal a full render of every sample (render_image)."""
-    from evdnerf_ros.field import make_field, render_image
-    from evdnerf_ros.field.dynamic_region import DynamicRegion
-    from evdnerf_ros.field.occupancy import OccupancyGrid
-    from evdnerf_ros.field.render import flat_background
-    from evdnerf_ros.field.renderer import FieldRenderer
+def _dense_planes_field(seed):
+    """A small planes field dense enough to show, changing everywhere in time."""
+    from evdnerf_ros.field import make_field
 
-    torch.manual_seed(5)
+    torch.manual_seed(seed)
     field = make_field("planes", resolutions=[8], time_resolution=4, features=4, hidden=8).eval()
     with torch.no_grad():
         for tp in field.time_planes:
             tp.uniform_(0.0, 3.0)
         for sp in field.space_planes:
             sp.uniform_(1.0, 3.0)
+    return field
+
+
+@pytest.mark.parametrize("world", ["field", "flat"])
+def test_field_renderer_places_only_samples_near_the_cells_and_draws_the_same(world):
+    """With an occupancy grid (and, flat, a dynamic region) smaller than the box, only the samples
+    of each ray that can fall in the box around their cells are placed and looked up: the
+    images at a moving camera's poses equal a full render of every sample (render_image)."""
+    from evdnerf_ros.field import render_image
+    from evdnerf_ros.field.dynamic_region import DynamicRegion
+    from evdnerf_ros.field.occupancy import OccupancyGrid
+    from evdnerf_ros.field.render import flat_background
+    from evdnerf_ros.field.renderer import FieldRenderer
+
+    field = _dense_planes_field(5)
     box = [[-0.6, -0.5, -0.4], [0.5, 0.6, 0.7]]
     cells = torch.zeros(10, 10, 10, dtype=torch.bool)               # inside the box, not touching it
     cells[2:8, 2:6, 2:8] = torch.rand(6, 4, 6) > 0.3
@@ -187,18 +195,11 @@ def test_field_renderer_places_only_samples_near_the_cells_and_draws_the_same(wo
 def test_render_pixels_draws_pixels_of_many_poses_and_times_as_render(world):
     """``render_pixels`` (the per-pixel sampler's batch): pixels of several poses and times in one
     call, in any order, equal to the images ``render`` draws, and it checks what it is given."""
-    from evdnerf_ros.field import make_field
     from evdnerf_ros.field.dynamic_region import DynamicRegion
     from evdnerf_ros.field.occupancy import OccupancyGrid
     from evdnerf_ros.field.renderer import FieldRenderer
 
-    torch.manual_seed(6)
-    field = make_field("planes", resolutions=[8], time_resolution=4, features=4, hidden=8).eval()
-    with torch.no_grad():
-        for tp in field.time_planes:
-            tp.uniform_(0.0, 3.0)
-        for sp in field.space_planes:
-            sp.uniform_(1.0, 3.0)
+    field = _dense_planes_field(6)
     box = [[-0.6, -0.5, -0.4], [0.5, 0.6, 0.7]]
     cells = torch.zeros(10, 10, 10, dtype=torch.bool)
     cells[2:8, 2:6, 2:8] = True

@@ -328,30 +328,37 @@ class FieldRenderer(CameraRenderer):
         with torch.no_grad():
             plans, backdrop = self._plan(T)
             out = backdrop.clone()
+
+            def decode(p):
+                if hasattr(self.field, "decode_at"):
+                    return self.field.decode_at(p.feats, tn)
+                return self.field.decode(p.feats, as_time_column(tn, p.dyn_idx.numel(), self.device))
+
             for p in plans:
-                self.samples_total += p.n_samples_traced
-                self.rays_rendered += p.n_rays
-                if p.static_rays.numel():
-                    out[p.static_rays] = p.static_grey
-                if not p.dyn_rays.numel():
-                    continue
-                sigma, grey = p.base_sigma, p.base_grey
-                if p.dyn_idx.numel():
-                    if hasattr(self.field, "decode_at"):
-                        dens, g = self.field.decode_at(p.feats, tn)
-                    else:
-                        dens, g = self.field.decode(p.feats, as_time_column(tn, p.dyn_idx.numel(), self.device))
-                    if p.dyn_weight is not None:
-                        dens = dens * p.dyn_weight
-                    sigma = sigma.index_put((p.dyn_idx,), dens.float())
-                    grey = grey.index_put((p.dyn_idx,), g.float())
-                    self.samples_evaluated += int(p.dyn_idx.numel())
-                k = p.dyn_rays.numel()
-                out[p.dyn_rays] = _composite(sigma.reshape(k, -1), grey.reshape(k, -1), p.delta,
-                                             p.dyn_background)
+                self._play(p, out, decode)
         self.rays_total += n
         img = out.reshape(cam.height, cam.width).cpu().numpy().astype(np.float32)
         return np.maximum(img, 0.0)
+
+    def _play(self, p: _ChunkPlan, out: torch.Tensor, decode) -> None:
+        """Write a chunk's rays into ``out``: the static rays' grey, and the dynamic rays composited
+        with their dynamic samples' (density, grey) from ``decode(p)``."""
+        self.samples_total += p.n_samples_traced
+        self.rays_rendered += p.n_rays
+        if p.static_rays.numel():
+            out[p.static_rays] = p.static_grey
+        if not p.dyn_rays.numel():
+            return
+        sigma, grey = p.base_sigma, p.base_grey
+        if p.dyn_idx.numel():
+            dens, g = decode(p)
+            if p.dyn_weight is not None:
+                dens = dens * p.dyn_weight
+            sigma = sigma.index_put((p.dyn_idx,), dens.float())
+            grey = grey.index_put((p.dyn_idx,), g.float())
+            self.samples_evaluated += int(p.dyn_idx.numel())
+        k = p.dyn_rays.numel()
+        out[p.dyn_rays] = _composite(sigma.reshape(k, -1), grey.reshape(k, -1), p.delta, p.dyn_background)
 
     def render_pixels(self, poses, t_ns, which, pixels) -> np.ndarray:
         """(M,) float32 linear intensity (>= 0) of row-major pixel ``pixels[i]`` seen from pose
@@ -381,25 +388,13 @@ class FieldRenderer(CameraRenderer):
             ray_time = tn[torch.as_tensor(which, device=self.device)]
             out, rays = self._backdrop_and_rays(o, d)
             out = out.clone()
+
+            def decode(p):       # each dynamic sample at its ray's time
+                t = ray_time[p.dyn_rays][torch.div(p.dyn_idx, p.width, rounding_mode="floor")]
+                return self.field.decode(p.feats, t[:, None])
+
             for j in torch.split(rays, self.chunk):
-                p = self._plan_chunk(o[j], d[j], j, out[j], playback=False)
-                self.samples_total += p.n_samples_traced
-                self.rays_rendered += p.n_rays
-                if p.static_rays.numel():
-                    out[p.static_rays] = p.static_grey
-                if not p.dyn_rays.numel():
-                    continue
-                sigma, grey = p.base_sigma, p.base_grey
-                if p.dyn_idx.numel():
-                    t = ray_time[p.dyn_rays][torch.div(p.dyn_idx, p.width, rounding_mode="floor")]
-                    dens, g = self.field.decode(p.feats, t[:, None])
-                    if p.dyn_weight is not None:
-                        dens = dens * p.dyn_weight
-                    sigma = sigma.index_put((p.dyn_idx,), dens.float())
-                    grey = grey.index_put((p.dyn_idx,), g.float())
-                    self.samples_evaluated += int(p.dyn_idx.numel())
-                k = p.dyn_rays.numel()
-                out[p.dyn_rays] = _composite(sigma.reshape(k, -1), grey.reshape(k, -1), p.delta, p.dyn_background)
+                self._play(self._plan_chunk(o[j], d[j], j, out[j], playback=False), out, decode)
         self.rays_total += int(pixels.size)
         return np.maximum(out.cpu().numpy().astype(np.float32), 0.0)
 
