@@ -9,9 +9,10 @@ A moving view (validation views with a camera trajectory, e.g. `evdnerf simulate
 --moving-views`) is scored the same way, with B(t) rendered at the camera's pose at t
 (interpolated from its poses, as its pose topic's consumers do): every pixel may change,
 so nothing is skipped for it. ``static_world`` says what the field shows outside its dynamic
-region, as the publisher's parameter of that name: ``field`` (the default: the field as
-trained), ``flat`` (nothing there, one constant grey) or ``auto`` (flat for moving views of a
-run with a dynamic region: what the publisher plays back for a moving camera).
+region, as the publisher's parameter of that name: ``field`` (the field as trained), ``flat``
+(nothing there, one constant grey, the region fading out at its boundary) or ``auto`` (the
+default of ``run_eval`` / ``evdnerf eval``: flat for moving views of a run with a dynamic
+region, what the publisher plays back for a moving camera; static views are scored as trained).
 """
 
 from __future__ import annotations
@@ -202,7 +203,7 @@ def spread_views(views, k: int | None) -> list[str]:
 
 def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int | None = None,
              train_views: int | None = 4, image_path=None, factors=(1, 4, 8), log=print, device="cpu",
-             static_world: str = "field") -> dict:
+             static_world: str = "auto") -> dict:
     """`evdnerf eval RUN TRAIN.h5`: events metrics on validation and training views at the
     trained window count and 4x / 8x finer windows; GT vs prediction event images.
     ``max_views`` bounds every split (its first views); ``train_views`` (None or 0: all) the

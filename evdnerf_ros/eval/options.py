@@ -18,9 +18,10 @@ class EvalOptions:
                               "protocol's metric is on the validation views); 0: every one", low=0, high=100_000)
     device: str = option("auto", "where the field is evaluated: auto (cuda when available), cpu or cuda",
                          choices=DEVICE_CHOICES)
-    static_world: str = option("field", "what the field shows outside its dynamic region: field (as trained), "
+    static_world: str = option("auto", "what the field shows outside its dynamic region: field (as trained), "
                                "flat (nothing, one constant grey) or auto (flat for moving views, as the "
-                               "publisher plays back a moving camera)", choices=("auto", "field", "flat"))
+                               "publisher plays back a moving camera; static views as trained)",
+                               choices=("auto", "field", "flat"))
     published: str | None = option(None, "instead: publish from the run along its orbit (or a static novel "
                                    "view) and score the events against the simulator's along the same path "
                                    "(simulated training sets only); the flag alone means orbit", kind=str,
