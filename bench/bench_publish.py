@@ -184,11 +184,16 @@ LEVERS = {"plain (every ray, every sample)": {"leave_out": False, "reuse_static"
           "min step 2 ms": {"min_step_ns": 2_000_000},
           "chunk 50 ms": {"chunk": 0.05},
           "min step 1 ms, chunk 50 ms": {"min_step_ns": 1_000_000, "chunk": 0.05},
-          "whole images, min step 5 ms": {"per_pixel": "false", "min_step_ns": 5_000_000}}
+          "whole images, min step 5 ms": {"per_pixel": "false", "min_step_ns": 5_000_000},
+          "no motion guard": {"max_travel_px": 0.0},
+          "motion guard 1 px": {"max_travel_px": 1.0},
+          "min step 1 ms, chunk 50 ms, no motion guard": {"min_step_ns": 1_000_000, "chunk": 0.05,
+                                                          "max_travel_px": 0.0}}
 #: levers that are the default on one path (static_world auto: field for a static camera, flat
 #: for a moving one; per_pixel auto: whole images for a static camera, per pixel for a moving
-#: one) or meaningless there (the static part's tolerance levers with a moving camera)
-SKIP = {"static": ("static world field", "whole images"), "orbit": ("static world flat", "tolerance")}
+#: one) or meaningless there (the static part's tolerance levers with a moving camera, the
+#: motion guard with a static one)
+SKIP = {"static": ("static world field", "whole images", "motion guard"), "orbit": ("static world flat", "tolerance")}
 #: levers of the RTF-against-resolution sweep (static camera)
 RESOLUTION_LEVERS = ("static reuse (default)", "baked 64")
 

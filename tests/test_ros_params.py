@@ -146,6 +146,18 @@ def test_validators_refuse_the_whole_set():
     assert params.as_dict() == {"lo": 7, "hi": 30}
 
 
+def test_a_bool_value_names_a_true_false_choice():
+    """``-p per_pixel:=false`` reads as a bool; a string parameter offering "true" / "false" takes it
+    as that choice, and refuses it otherwise."""
+    spec = P("mode", "auto", "", choices=("auto", "true", "false"))
+    assert spec.coerce(False, "t") == "false" and spec.coerce(True, "t") == "true"
+    assert spec.coerce("auto", "t") == "auto"
+    with pytest.raises(InputError, match="is a string, got bool"):
+        P("world", "auto", "", choices=("auto", "field")).coerce(True, "t")
+    with pytest.raises(InputError, match="is a string, got bool"):
+        P("name", "x", "").coerce(False, "t")
+
+
 def test_malformed_requests_are_logged_and_ignored(served):
     """Cyclone drops samples that are not valid CDR for the topic's type before they reach us
     (test_ros_graph.py sends such bytes from Fast DDS); what arrives can still be nonsense:

@@ -339,3 +339,56 @@ def test_per_pixel_sampling_extremes_and_errors():
     simulate_pixels(scene, 0, 10, g)
     with pytest.raises(InputError, match="not at t_start"):
         simulate_pixels(scene, 20, 30, g)
+
+
+def test_per_pixel_motion_guard_keeps_a_there_and_back_swing():
+    """The swing per pixel: without the guard each pixel's three samples say "nothing moves";
+    with it every pixel's events are those of the finest step."""
+    from evdnerf_ros.sim.sampling import simulate_pixels
+
+    span, w = 100_000_000, 16
+    min_step = span // 256
+    scene = Swing(span, w)
+
+    def pixels(t, pix):
+        return np.array([scene(int(tt))[0, p] for tt, p in zip(t, pix)])
+
+    fine, _ = simulate_renderer(scene, 0, span, EventGenerator(w, 1), min_step_ns=min_step, max_step_ns=min_step)
+    blind, _ = simulate_pixels(pixels, 0, span, EventGenerator(w, 1), min_step_ns=min_step, max_step_ns=span)
+    assert blind.size == 0
+    ev, st = simulate_pixels(pixels, 0, span, EventGenerator(w, 1), min_step_ns=min_step, max_step_ns=span,
+                             travel_px=scene.travel)
+    assert st.motion_splits > 0
+    assert _counts(ev, w).tolist() == _counts(fine, w).tolist()
+    with pytest.raises(InputError, match="max_travel_px"):
+        simulate_pixels(pixels, 0, 10_000, EventGenerator(w, 1), travel_px=scene.travel, max_travel_px=0.0)
+
+
+def test_box_travel_bounds_what_a_moving_camera_sees_move():
+    """``box_travel`` (a trained field's guard): nothing for a static camera; a pure rotation
+    moves a background at infinity by the angle times the magnification, and a box ahead by at
+    least as much as any of its points really moves in the image."""
+    from evdnerf_ros.geometry.camera import PinholeCamera, look_at
+    from evdnerf_ros.sim.motion import _magnification, box_travel
+
+    cam = PinholeCamera.from_fov(64, 48, 40.0)
+    box = np.array([[-0.3, -0.3, -0.3], [0.3, 0.3, 0.3]])
+    times = np.arange(0, 11, dtype=np.int64) * 1_000_000
+    still = np.stack([look_at([0.0, -3.0, 0.0], [0.0, 0.0, 0.0])] * times.size)
+    assert box_travel(box, cam, times, still).total_px == 0.0
+    turning = still.copy()
+    for k, a in enumerate(np.radians(np.linspace(0.0, 2.0, times.size))):      # 2 deg about the camera's y
+        c, s = np.cos(a), np.sin(a)
+        turning[k, :3, :3] = still[0, :3, :3] @ np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    far = box_travel(box, cam, times, turning, infinity=True).total_px
+    assert far >= np.radians(2.0) * _magnification(cam) * (1 - 1e-9)
+    # a point of the box, projected at each pose: its real image travel is within the bound
+    travel = box_travel(box, cam, times, turning, infinity=False)
+    p = np.array([0.3, 0.3, -0.3, 1.0])
+    uv = []
+    for T in turning:
+        x = np.linalg.inv(T) @ p
+        uv.append([cam.fx * x[0] / x[2] + cam.cx, cam.fy * x[1] / x[2] + cam.cy])
+    real = np.linalg.norm(np.diff(np.array(uv), axis=0), axis=1).sum()
+    assert 0.0 < real <= travel.total_px
+    assert travel(2_000_000, 5_000_000) <= travel.total_px

@@ -214,6 +214,17 @@ class FieldRenderer(CameraRenderer):
             out = np.stack([np.maximum(out[0], cells[0]), np.minimum(out[1], cells[1])])
         return out if bool(np.all(out[1] > out[0])) else None
 
+    def content_box(self) -> np.ndarray | None:
+        """(2, 3) world box around everything this renderer can show but a background at infinity:
+        with a flat static world the cells' box (None: nothing), else the scene box."""
+        return self._cached_cells_box() if self.flat_grey is not None else self.box.reshape(2, 3)
+
+    @property
+    def shows_infinity(self) -> bool:
+        """Whether what rays see beyond the box changes with their direction (a learned background
+        map, unless the static world is flat)."""
+        return self.flat_grey is None and getattr(self.field, "background_map", None) is not None
+
     def _may_see_cells(self, o, d):
         """(N,) bool: rays that hit the box and the cells' box (``_cells_box``); a cheap test
         before the exact one per sample in ``_plan_chunk``."""

@@ -77,6 +77,9 @@ PARAMETERS = [
       "renders the pixels of many times in one batch; false renders whole images, every pixel at every time any "
       "pixel needs; auto: true when the camera moves during the published span (a static camera's whole images "
       "reuse their static part instead)", choices=("auto", "true", "false"), read_only=True),
+    Param("max_travel_px", 4.0, "trained field, moving camera, adaptive sampling: a piece over which anything in "
+      "view may move further than this in the image (pixels) is split whatever its midpoint test says (the motion "
+      "guard: a there-and-back change between three renders is invisible to the test); 0: no guard", min=0.0),
     Param("render_rate_hz", 1000.0, "fixed sampling rate when adaptive is false", min=1e-3),
     Param("leave_out", True, "render only pixels whose rays can hit something (scene primitives' screen boxes / the "
       "field's occupancy grid)"),
@@ -288,6 +291,19 @@ class EventPublisher(Node):
         t_scene = int(t_ns) - self.t0 + int(round(self.params["scene_time_offset"] * NS))
         return self.source(self.camera_pose(t_ns), t_scene)
 
+    def _field_travel(self, t0: int, t1: int):
+        """The motion guard of a moving camera past a trained field over [t0, t1]
+        (``sim.motion.box_travel`` of what the field can show); None when it shows nothing."""
+        from ..sim.motion import box_travel, motion_sample_times
+
+        box = self.source.content_box()
+        if box is None:
+            return None
+        knots = self.track.t[(self.track.t > t0) & (self.track.t < t1)]
+        times = motion_sample_times(t0, t1, self.params["min_step_ns"], knots)
+        return box_travel(box, self.camera, times, self.track.poses(times) @ self.T_robot_cam,
+                          infinity=self.source.shows_infinity)
+
     def render_pixels(self, t_ns: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """Row-major pixels at trajectory times, many in one batch (``sim.sampling.simulate_pixels``)."""
         times, which = np.unique(t_ns, return_inverse=True)
@@ -377,8 +393,10 @@ class EventPublisher(Node):
         info_every = int(round(p["camera_info_period"] * NS))
         factor = p["realtime_factor"]
         evt = p["encoding"] in ("evt3", "evt2")
+        moving = self._camera_moves()
         per_pixel = p["adaptive"] and hasattr(self.source, "render_pixels") and (
-            p["per_pixel"] == "true" or (p["per_pixel"] == "auto" and self._camera_moves()))
+            p["per_pixel"] == "true" or (p["per_pixel"] == "auto" and moving))
+        guard = p["adaptive"] and moving and p["max_travel_px"] > 0 and hasattr(self.source, "content_box")
         self.logger.info(f"publishing {(self.t1 - self.t0) / NS:.3f} s of events from the {self.source.kind} on "
                          f"{self.events_pub.topic} ({p['encoding']}, {self.camera.width}x{self.camera.height}"
                          f"{', DDS domain %d' % self.dds.domain_id if self.dds is not None else ', no DDS'}"
@@ -398,15 +416,17 @@ class EventPublisher(Node):
                 self._camera_info(t)
                 next_info = t + info_every
             info_subs = subs
+            travel = self._field_travel(t, tb) if guard else None
+            adaptive = dict(tolerance_c=p["tolerance_c"], min_step_ns=p["min_step_ns"],
+                            max_step_ns=min(p["max_step_ns"], tb - t), travel_px=travel,
+                            max_travel_px=p["max_travel_px"] or 1.0)
             if per_pixel:
-                events, st = simulate_pixels(
-                    self.render_pixels, t, tb, self.generator, tolerance_c=p["tolerance_c"],
-                    min_step_ns=p["min_step_ns"], max_step_ns=min(p["max_step_ns"], tb - t))
+                events, st = simulate_pixels(self.render_pixels, t, tb, self.generator, **adaptive)
+            elif p["adaptive"]:
+                events, st = simulate_renderer(self.render, t, tb, self.generator, **adaptive)
             else:
-                events, st = simulate_renderer(
-                    self.render, t, tb, self.generator, mode="adaptive" if p["adaptive"] else "fixed",
-                    rate_hz=p["render_rate_hz"], tolerance_c=p["tolerance_c"],
-                    min_step_ns=p["min_step_ns"], max_step_ns=min(p["max_step_ns"], tb - t))
+                events, st = simulate_renderer(self.render, t, tb, self.generator, mode="fixed",
+                                               rate_hz=p["render_rate_hz"])
             if evt and events.size:
                 events = quantize_to_us(events, time_base_ns=self.t0)
             rep.render_seconds += st.render_seconds

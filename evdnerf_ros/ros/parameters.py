@@ -63,6 +63,8 @@ class ParameterSpec:
             ok = isinstance(value, (int, float)) and not isinstance(value, bool)
             value = float(value) if ok else value
         elif kind is str:
+            if isinstance(value, bool) and self.choices is not None and str(value).lower() in self.choices:
+                value = str(value).lower()       # `-p name:=false` reads as a bool: that choice
             ok = isinstance(value, str)
         elif kind is list:
             ok = isinstance(value, (list, tuple))

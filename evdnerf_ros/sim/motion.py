@@ -17,6 +17,10 @@ largest magnification ``f (1 + tan^2 theta)`` (theta at the image corner). A mov
 adds its rotation angle (the background at infinity). What this does not see: shadows move
 with their casters but, on a surface at a grazing angle to the light, faster than them
 (covered by the midpoint test and --min-step only).
+
+``box_travel`` is the same bound for a trained field seen by a moving camera (the event
+publisher): all it shows is a static box (and, with a learned background, what lies at
+infinity); the field's own motion inside the box is unknown, so ``max_step`` must stay below it.
 """
 
 from __future__ import annotations
@@ -98,6 +102,32 @@ def image_travel(scene, camera, pose_at: Callable[[int], np.ndarray], t0: int, t
             steps[n] = max(min(float(ang.max(initial=0.0)), math.pi), cam_rot) * px_per_rad
         prev = cur
     return ImageTravel(times, np.cumsum(steps))
+
+
+def box_travel(box, camera, times: np.ndarray, poses: np.ndarray, *, infinity: bool = True) -> ImageTravel:
+    """The motion guard of a camera moving past a static box ((2, 3) world lo / hi): what a trained
+    field shows lies in it (and, with ``infinity``, a background that varies with direction).
+    ``poses`` (K, 4, 4) T_world_cam at ``times`` (K,) int64 (``motion_sample_times``; the pose
+    track's knots among them).  The bound per interval is :func:`image_travel`'s for one object
+    that does not move: the largest move of a box corner in the camera frame over the smallest
+    distance to the box's bounding sphere, or (``infinity``) the camera's rotation angle,
+    whichever is larger."""
+    lo, hi = np.asarray(box, np.float64).reshape(2, 3)
+    corners = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(8, 3)
+    centre, radius = (lo + hi) / 2.0, float(np.linalg.norm(hi - lo)) / 2.0
+    poses = np.asarray(poses, np.float64)
+    Rc, c = poses[:, :3, :3], poses[:, :3, 3]
+    pc = np.einsum("tkj,tji->tki", corners[None] - c[:, None, :], Rc)         # (K, 8, 3) camera frame
+    near = np.linalg.norm(centre - c, axis=1) - radius
+    move = np.linalg.norm(pc[1:] - pc[:-1], axis=2).max(axis=1)
+    nearest = np.minimum(near[1:], near[:-1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ang = np.where(move == 0, 0.0, np.where(nearest > move, move / np.maximum(nearest - move, 1e-300),
+                                                math.pi))
+    trace = np.einsum("tij,tij->t", Rc[:-1], Rc[1:])                          # trace(R_a^T R_b)
+    cam_rot = np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)) if infinity else 0.0
+    steps = np.maximum(np.minimum(ang, math.pi), cam_rot) * _magnification(camera)
+    return ImageTravel(np.asarray(times, np.int64), np.concatenate([[0.0], np.cumsum(steps)]))
 
 
 def _rotation_angle(R: np.ndarray) -> float:

@@ -96,6 +96,13 @@ def _positive_int(name, value) -> int:
     return v
 
 
+def _travel_limit(max_travel_px) -> float:
+    limit = float(max_travel_px)
+    if not np.isfinite(limit) or limit <= 0:
+        raise InputError(f"max_travel_px must be > 0 (got {max_travel_px!r})")
+    return limit
+
+
 def _adaptive_settings(tolerance_c, max_dlog_c, min_step_ns, max_step_ns) -> tuple[float, int, int]:
     """Checked (tolerance, min step, max step) of adaptive sampling."""
     tol = float(tolerance_c)
@@ -192,9 +199,7 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
     else:
         tol, min_step, max_step = _adaptive_settings(tolerance_c, max_dlog_c, min_step_ns, max_step_ns)
         if travel_px is not None:
-            travel_limit = float(max_travel_px)
-            if not np.isfinite(travel_limit) or travel_limit <= 0:
-                raise InputError(f"max_travel_px must be > 0 (got {max_travel_px!r})")
+            travel_limit = _travel_limit(max_travel_px)
         limit = tol * c_ref
         dlog_limit = None if max_dlog_c is None else float(max_dlog_c) * c_ref
         cache = {t_start: L_start}
@@ -257,9 +262,12 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
 def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray], t_start, t_end,
                     generator: EventGenerator, *, tolerance_c: float = 0.1, max_dlog_c: float | None = None,
                     min_step_ns: int = DEFAULT_MIN_STEP_NS, max_step_ns: int = DEFAULT_MAX_STEP_NS,
+                    travel_px: Callable[[int, int], float] | None = None,
+                    max_travel_px: float = DEFAULT_MAX_TRAVEL_PX,
                     progress: Callable[[int], None] | None = None):
     """Adaptive sampling refined pixel by pixel; ``(events, SamplingStats)`` as
-    :func:`simulate_renderer`.
+    :func:`simulate_renderer` (``travel_px`` / ``max_travel_px``: its motion guard: a piece
+    travelling further is split for every pixel, whatever its midpoint says).
 
     ``render_pixels(t_ns, pixels)`` -> linear intensity of row-major pixel ``pixels[i]`` at
     time ``t_ns[i]`` (both (M,) int64; many times in one call).  The grid, the top pieces and
@@ -282,6 +290,7 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
     if t_end <= t_start:
         raise InputError(f"t_end {t_end} ns must be after t_start {t_start} ns")
     tol, min_step, max_step = _adaptive_settings(tolerance_c, max_dlog_c, min_step_ns, max_step_ns)
+    travel_limit = _travel_limit(max_travel_px) if travel_px is not None else None
     stats = SamplingStats(mode="per-pixel")
     n_pix = generator.n_pixels
     every = np.arange(n_pix)
@@ -338,6 +347,11 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
             ok = dev < limit
             if dlog_limit is not None:
                 ok &= np.abs(Lb - La) <= dlog_limit
+            if travel_limit is not None:
+                pieces, which = np.unique(np.stack([lo, hi]), axis=1, return_inverse=True)
+                far = np.array([travel_px(int(ta), int(tb)) > travel_limit for ta, tb in times(pieces).T])
+                stats.motion_splits += int(far.sum())
+                ok &= ~far[which.ravel()]
             if ok.any():
                 stats.intervals += int(ok.sum())
                 stats.max_deviation_c = max(stats.max_deviation_c, float(dev[ok].max()) / c_ref)
