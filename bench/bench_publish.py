@@ -423,7 +423,8 @@ def plot(result, path):
                 ax[4].axhline(rows[0]["zero_floor"]["psnr"], ls="--", lw=1, color="grey")
                 ax[4].axhline(rows[0]["true_render"]["psnr"], ls=":", lw=1, color="k")
         ax[4].set_xscale("log")
-        ax[4].set_xlabel(f"publisher wall s for {pv['span_s']:g} s of events ({pv['threads']} thread)")
+        ax[4].set_xlabel(f"publisher wall s for {pv['span_s']:g} s (static) / {pv.get('orbit_span_s', pv['span_s']):g} s "
+                         f"(orbit) of events ({pv['threads']} threads)")
         ax[4].set_ylabel("events PSNR vs true events (dB)")
         ax[4].set_title("published vs true (dashed: all-zero floor, dotted: true render)")
         ax[4].legend(fontsize=7)
