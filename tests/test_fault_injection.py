@@ -530,9 +530,19 @@ def test_sigkilled_recording_is_kept_and_salvaged(tmp_path):
     publish = ["publish", "--resolution", "16", "16", "--duration", "1.0"]
     proc = subprocess.Popen(EVDNERF + publish + ["-o", "b"], cwd=tmp_path, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
+    from evdnerf_ros.errors import EvdnerfError
+    from evdnerf_ros.io.mcap_salvage import salvage_messages
+
+    def flushed_events() -> bool:          # an event message on disk (a flush before the first holds none)
+        for f in tmp_path.glob(".b.*.partial/b/*.mcap"):
+            try:
+                return any(m.topic.endswith("/events") for m in salvage_messages(f))
+            except EvdnerfError:             # a file being written: look again
+                return False
+        return False
+
     deadline = time.monotonic() + 90
-    while time.monotonic() < deadline and not [f for f in tmp_path.glob(".b.*.partial/b/*.mcap")
-                                                if f.stat().st_size > 1024]:
+    while time.monotonic() < deadline and not flushed_events():
         time.sleep(0.05)
     proc.kill()
     proc.wait()

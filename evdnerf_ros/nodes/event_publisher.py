@@ -393,10 +393,10 @@ class EventPublisher(Node):
         info_every = int(round(p["camera_info_period"] * NS))
         factor = p["realtime_factor"]
         evt = p["encoding"] in ("evt3", "evt2")
-        moving = self._camera_moves()
-        per_pixel = p["adaptive"] and hasattr(self.source, "render_pixels") and (
-            p["per_pixel"] == "true" or (p["per_pixel"] == "auto" and moving))
-        guard = p["adaptive"] and moving and p["max_travel_px"] > 0 and hasattr(self.source, "content_box")
+        field = hasattr(self.source, "render_pixels")          # a trained field (a scene has neither switch)
+        moving = field and self._camera_moves()
+        per_pixel = p["adaptive"] and field and (p["per_pixel"] == "true" or (p["per_pixel"] == "auto" and moving))
+        guard = p["adaptive"] and moving and p["max_travel_px"] > 0
         self.logger.info(f"publishing {(self.t1 - self.t0) / NS:.3f} s of events from the {self.source.kind} on "
                          f"{self.events_pub.topic} ({p['encoding']}, {self.camera.width}x{self.camera.height}"
                          f"{', DDS domain %d' % self.dds.domain_id if self.dds is not None else ', no DDS'}"
