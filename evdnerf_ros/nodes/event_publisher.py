@@ -419,7 +419,7 @@ class EventPublisher(Node):
             travel = self._field_travel(t, tb) if guard else None
             adaptive = dict(tolerance_c=p["tolerance_c"], min_step_ns=p["min_step_ns"],
                             max_step_ns=min(p["max_step_ns"], tb - t), travel_px=travel,
-                            max_travel_px=p["max_travel_px"] or 1.0)
+                            max_travel_px=p["max_travel_px"])
             if per_pixel:
                 events, st = simulate_pixels(self.render_pixels, t, tb, self.generator, **adaptive)
             elif p["adaptive"]:
