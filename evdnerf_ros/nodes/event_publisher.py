@@ -401,6 +401,10 @@ class EventPublisher(Node):
                          f"{self.events_pub.topic} ({p['encoding']}, {self.camera.width}x{self.camera.height}"
                          f"{', DDS domain %d' % self.dds.domain_id if self.dds is not None else ', no DDS'}"
                          f"{', bag ' + str(self.bag.path) if self.bag is not None else ''})")
+        if field and p["adaptive"]:
+            self.logger.info(f"adaptive sampling {'per pixel' if per_pixel else 'of whole images'}, min step "
+                             f"{p['min_step_ns'] / 1e6:g} ms, "
+                             + (f"motion guard {p['max_travel_px']:g} px" if guard else "no motion guard"))
         wall0 = time.perf_counter()
         last_report = wall0
         next_info = self.t0
