@@ -102,10 +102,11 @@ class DynamicRegion:
         """(N, 3) normalised points -> (N,) float in [0, 1]: 1 deep inside the region, falling
         linearly to 0 at its boundary (twice the mask's trilinear interpolation between cell
         centres, less one, clamped).  Continuous: a ray sweeping across the boundary fades."""
-        vol = getattr(self, "_soft_volume", None)
-        if vol is None or vol.device != self.mask.device:
+        mask, vol = getattr(self, "_soft_volume", (None, None))
+        if mask is not self.mask:              # made once per mask (a copy moved to a device has its own)
             # grid_sample reads (D, H, W) = (z, y, x); the mask is indexed [x, y, z]
-            vol = self._soft_volume = self.mask.permute(2, 1, 0).float()[None, None].contiguous()
+            vol = self.mask.permute(2, 1, 0).float()[None, None].contiguous()
+            self._soft_volume = (self.mask, vol)
         g = x.to(vol.dtype).reshape(1, 1, 1, -1, 3)
         m = torch.nn.functional.grid_sample(vol, g, mode="bilinear", padding_mode="border", align_corners=False)
         return (2.0 * m.reshape(-1) - 1.0).clamp(0.0, 1.0)
