@@ -231,16 +231,30 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: Se
                            "val_x4_events_psnr": result["val_windows_x4"]["continuous"]["psnr"],
                            "val_x4_zero_floor_psnr": result["val_windows_x4"]["zero_floor"]["psnr"],
                            "true_scene": result.get("true_scene"),
-                           "true_scene_note": result.get("true_scene_note")}
+                           "true_scene_note": result.get("true_scene_note"),
+                           "val": _against_truth(val)}
     moving = result.get("moving_windows_x1")
     if moving is not None:
         summary["training"].update(moving_events_psnr=moving["continuous"]["psnr"],
-                                   moving_zero_floor_psnr=moving["zero_floor"]["psnr"])
+                                   moving_zero_floor_psnr=moving["zero_floor"]["psnr"],
+                                   moving=_against_truth(moving))
     else:
         log("moving-camera view: skipped (a turntable capture records static views only)"
             if source.name == VIRTUAL_RIG else "moving-camera view: none in this session")
     summary["wall_seconds"] = round(time.perf_counter() - start, 1)
     return summary
+
+
+def _against_truth(scores: dict) -> dict:
+    """Field, floor and true scene of one split, by the protocol (mean over windows) and pooled
+    (one MSE over all windows), with the margins closed (None: no true scene, or no margin)."""
+    truth = scores.get("truth", {}).get("continuous", {})
+    return {"psnr": {"field": scores["continuous"]["psnr"], "floor": scores["zero_floor"]["psnr"],
+                     "true_scene": truth.get("psnr")},
+            "psnr_pooled": {"field": scores["continuous"]["psnr_pooled"],
+                            "floor": scores["zero_floor"]["psnr_pooled"],
+                            "true_scene": truth.get("psnr_pooled")},
+            "margin_closed": scores.get("margin_closed")}
 
 
 def _on_us_grid(data: EventFile) -> tuple[EventFile, int]:

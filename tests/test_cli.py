@@ -159,6 +159,11 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert summary["train_h5"]["views"] == 7 and summary["train_h5"]["dl_abs_sum_view0"] > 0
     assert summary["training"]["iterations"] > 0 and np.isfinite(summary["training"]["val_events_psnr"])
     assert np.isfinite(summary["training"]["moving_events_psnr"])
+    for split in ("val", "moving"):           # the truth's scores, per window and pooled, and the margins
+        scores = summary["training"][split]
+        assert all(np.isfinite(scores[k][who]) for k in ("psnr", "psnr_pooled")
+                   for who in ("field", "floor", "true_scene"))
+        assert set(scores["margin_closed"]) == {"continuous", "quantized", "pooled"}
     assert (out / "run" / "eval_events.png").exists() and (out / "report" / "report.png").exists()
     assert main(["demo", "-o", str(out)]) == 2          # refuses to overwrite
     assert "already exists" in capsys.readouterr().err

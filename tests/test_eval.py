@@ -265,8 +265,16 @@ def test_report_with_the_true_scene(tmp_path):
               "val_margin_closed": 0.6}]
     (run / "metrics.jsonl").write_text("\n".join(json.dumps(x) for x in lines) + "\n")
     res = run_report([run], tmp_path / "rep")
-    assert "| t | 20 | 9.0 | 36.00 | 36.00 | 30.00 | 40.00 | 60 % |" in (tmp_path / "rep" / "report.md").read_text()
+    assert "| t | 20 | 9.0 | 36.00 | 36.00 | 30.00 | 40.00 | 60 % | – |" in (tmp_path / "rep" / "report.md").read_text()
     assert res["runs"][0]["margin_closed"] == pytest.approx(0.6)
+    # a sparse set: no margin by the mean over windows, one pooled
+    lines[1].update(val_margin_closed=None, val_margin_closed_pooled=0.25)
+    (run / "metrics.jsonl").write_text("\n".join(json.dumps(x) for x in lines) + "\n")
+    res = run_report([run], tmp_path / "rep", overwrite=True)
+    assert "| 40.00 | – | 25 % |" in (tmp_path / "rep" / "report.md").read_text()
+    assert res["runs"][0]["margin_closed_pooled"] == pytest.approx(0.25)
+    del lines[1]["val_margin_closed_pooled"]
+    lines[1]["val_margin_closed"] = 0.6
     lines[1]["val_margin_closed"] = None
     (run / "metrics.jsonl").write_text("\n".join(json.dumps(x) for x in lines) + "\n")
     assert read_metrics(run)["margin"][1] != read_metrics(run)["margin"][1]       # NaN: no margin

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from evdnerf_ros.cli import main
+from evdnerf_ros.eval.truth import margin_closed
 
 
 @pytest.fixture
@@ -30,6 +31,9 @@ def test_train_then_eval_pipeline(tiny_set, tmp_path, capsys):
     assert all(x["val_margin_closed"] == pytest.approx((x["val_psnr"] - x["val_psnr_zero_floor"]) /
                                                         (x["val_psnr_truth"] - x["val_psnr_zero_floor"]))
                for x in evals)
+    assert all(x["val_margin_closed_pooled"] == pytest.approx(
+        (x["val_psnr_pooled"] - x["val_psnr_zero_floor_pooled"]) /
+        (x["val_psnr_truth_pooled"] - x["val_psnr_zero_floor_pooled"])) for x in evals)
     assert all(b["wall_s"] > a["wall_s"] for a, b in zip(evals, evals[1:]))
     capsys.readouterr()
     assert main(["eval", str(run), str(tiny_set), "--json", "--max-views", "2"]) == 0
@@ -42,6 +46,8 @@ def test_train_then_eval_pipeline(tiny_set, tmp_path, capsys):
             # dL costs it at fine windows (there the continuous margin is None: nothing to close)
             assert m["truth"]["quantized"]["psnr"] > m["zero_floor"]["psnr"]
             assert m["margin_closed"]["quantized"] is not None
+            assert m["margin_closed"]["pooled"] == pytest.approx(margin_closed(
+                m["continuous"]["psnr_pooled"], m["zero_floor"]["psnr_pooled"], m["truth"]["continuous"]["psnr_pooled"]))
             if factor == 1:
                 assert m["truth"]["continuous"]["psnr"] > m["zero_floor"]["psnr"]
     assert result["true_scene"] == "fork"

@@ -66,3 +66,33 @@ def test_no_truth_for_a_recorded_session(tiny_train_h5, tmp_path):
     with TrainingSet(copy) as ts:
         truth, why = TrueScene.of(ts)
     assert truth is None and "not converted from a simulated session" in why
+
+
+def test_pooled_margin_where_empty_windows_leave_no_mean_margin(tiny_train_h5):
+    """A sparse set: a window without events gives the floor the 100 dB cap, and a true scene
+    whose sub-threshold dL is not exactly zero there falls below the floor in the protocol's
+    mean over windows (no margin). One MSE over all windows still ranks them: the pooled margin."""
+    from evdnerf_ros.eval.evaluate import evaluate_views
+    from evdnerf_ros.field import PlanesField
+    from evdnerf_ros.train.rays import default_box
+
+    with TrainingSet(tiny_train_h5) as ts:
+        truth, why = TrueScene.of(ts)
+        assert truth is not None, why
+        view, n = ts.val_views[0], 8
+        edges = window_edges(*ts.time_range, n)
+        gt = ts.log_change_stack(view, edges)[protocol_windows(n)]
+        true = truth.log_change_stack(view, edges, protocol_windows(n))
+        empty = np.zeros_like(gt[:1])
+        faint = np.full_like(gt[:1], 0.01)                   # the truth's sub-threshold change
+        m = event_metrics(np.concatenate([true, faint, faint]), np.concatenate([gt, empty, empty]),
+                          c_pos=ts.c_pos, c_neg=ts.c_neg)
+        assert m["continuous"]["psnr"] < m["zero_floor"]["psnr"]        # the 100 dB windows win
+        assert m["continuous"]["psnr_pooled"] > m["zero_floor"]["psnr_pooled"]
+        # evaluate_views reports the pooled margin of a field next to the protocol's
+        field = PlanesField(resolutions=(4,), time_resolution=4, features=2, seed=0)
+        _, _, scores = evaluate_views(field, ts, [view], n, box=default_box(ts), n_samples=4, log_eps=1e-3, truth=truth)
+        pooled = scores["margin_closed"]["pooled"]
+        assert pooled == pytest.approx(margin_closed(scores["continuous"]["psnr_pooled"],
+                                                     scores["zero_floor"]["psnr_pooled"],
+                                                     scores["truth"]["continuous"]["psnr_pooled"]))
