@@ -16,9 +16,12 @@ the session layout's one writer) with that truth, in the keys a simulated sessio
 * per view ``ground_truth.clock_offset_ns``: the view clock's reading at scene time 0, from the
   twin's record of where it put the firmware's trigger pulse (the motion's START, scene time
   ``start_ns_scene``) on its sensor clock, and the view's sensor-to-bag time offset; a view
-  whose edge the twin placed late (the machine fell behind real time) gets none;
-* ``rig.virtual``: the twin, scene size, render rate and ``scene_window`` (x y w h: where the
-  scene sits on the sensor, the window to convert with ``--crop``), and the late counts.
+  whose edge the twin placed late (the machine fell behind real time) gets none; and
+  ``ground_truth.sensor_zero_scene_ns``, the scene time of the twin's sensor zero in that view;
+* ``rig.virtual``: the twin, scene size, render rate, ``frame_ns`` (its renders lie on the grid
+  of sensor-time multiples of this, joined linearly in log by its event generator) and
+  ``scene_window`` (x y w h: where the scene sits on the sensor, the window to convert with
+  ``--crop``), and the late counts.  The true-scene reference renders on that same grid.
 """
 
 from __future__ import annotations
@@ -106,7 +109,7 @@ class VirtualRigSource:
             src = vr.twin.source
             late_edges = sum(not r.on_time for r in vr.trigger_log if r.sensor_ns is not None)
             virtual = {"model": self.model, "scene_size": [int(w), int(h)], "rate_hz": float(self.rate_hz),
-                       "latency_us": int(vr.latency_us),
+                       "frame_ns": int(vr.source.frame_ns), "latency_us": int(vr.latency_us),
                        "scene_window": [int(src.dx), int(src.dy), int(src.inner.width), int(src.inner.height)],
                        "late_trigger_edges": int(late_edges), "late_renders": int(vr.source.late_renders)}
             if late_edges or vr.source.late_renders:
@@ -172,12 +175,15 @@ def add_truth(out_dir, scene_ref: str, profile, trigger_log, virtual: dict, *, l
         gt = None
         if record is not None:
             gt = {"trigger_sensor_ns": int(record.sensor_ns), "trigger_on_time": bool(record.on_time),
-                  "clock_offset_ns": None}
+                  "clock_offset_ns": None, "sensor_zero_scene_ns": None}
             if record.on_time:
                 # the view clock = the bag's time offset + sensor time; the edge is scene time
                 # start_ns_scene, so the clock reads start_ns_scene + offset there
                 time_offset = int(read_events(Path(out_dir) / view["bag"]).time_offset_ns)
                 gt["clock_offset_ns"] = time_offset + int(record.sensor_ns) - start_ns_scene
+                # the twin renders on a grid of its own sensor time (every rig.virtual.frame_ns
+                # from its stream's zero): sensor zero is this scene time
+                gt["sensor_zero_scene_ns"] = start_ns_scene - int(record.sensor_ns)
         views.append(dict(view, ground_truth=gt))
     source = dict(data.get("source") or {}, kind="capture", software_version=__version__, rig="virtual",
                   scene=scene.name, scene_ref=str(scene_ref), supersample=1)

@@ -415,3 +415,20 @@ def test_background_writer_stops_before_an_interrupt_leaves_close():
         sink.close()
     assert sink.stopped.is_set() and not vw.writing
     assert vw.done < 3                 # what was still queued was dropped, not written
+
+
+def test_bad_twin_render_records_are_refused(sim, tmp_path):
+    """rig.virtual.frame_ns and ground_truth.sensor_zero_scene_ns (a virtual-rig capture's render
+    grid, for the true-scene reference) are checked; nothing is written."""
+    def frame(value):
+        return lambda d: d.setdefault("rig", {}).setdefault("virtual", {}).__setitem__("frame_ns", value)
+
+    for value in (-5, 0, 2.5, True, "8ms"):
+        s = copy_session(sim, tmp_path / f"f{value}", frame(value))
+        with pytest.raises(InputError, match=r"rig.virtual.frame_ns must be a whole number"):
+            run_convert(s, tmp_path / "o.h5", offsets="ground-truth", **QUIET)
+    s = copy_session(sim, tmp_path / "z", lambda d: d["views"][0]["ground_truth"].__setitem__(
+        "sensor_zero_scene_ns", "soon"))
+    with pytest.raises(InputError, match="sensor_zero_scene_ns"):
+        run_convert(s, tmp_path / "o.h5", offsets="ground-truth", **QUIET)
+    assert not (tmp_path / "o.h5").exists() and not no_partial(tmp_path)

@@ -72,6 +72,23 @@ def test_demo_captures_its_session_on_the_virtual_rig(tmp_path, rig_lock):
         assert (ts.width, ts.height) == (w, h) and len(ts.views) == 6 and len(ts.val_views) == 2
         assert ts.provenance["crop"] == [x, y, w, h]
         assert ts.provenance["session_source"]["kind"] == "capture"
+        truth = ts.provenance.get("truth")
+        if truth is not None:          # every trigger edge placed on time
+            # the reference renders on the twin's grid (125 Hz), so at 128 windows (7.8 ms) it is
+            # closer to the events than predicting none (rendered at exact times: 1.3-1.6x the floor)
+            grid = truth["render_grid"]
+            assert grid["period_ns"] == doc["rig"]["virtual"]["frame_ns"] == 8_000_000
+            assert set(grid["scene_ns"]) == set(ts.views)
+            from evdnerf_ros.eval.truth import TrueScene
+            from evdnerf_ros.events.slicing import window_edges
+
+            reference, why = TrueScene.of(ts)
+            assert reference is not None, why
+            edges = window_edges(*ts.time_range, 128)
+            for view in ts.val_views:
+                gt = ts.log_change_stack(view, edges).astype(np.float64)
+                true = reference.log_change_stack(view, edges, range(128))
+                assert np.mean((true - gt) ** 2) < 0.9 * np.mean(gt ** 2), view
     t = summary["training"]
     assert t["iterations"] > 0 and np.isfinite(t["val_events_psnr"]) and np.isfinite(t["val_x4_events_psnr"])
     assert "moving_events_psnr" not in t

@@ -96,3 +96,70 @@ def test_pooled_margin_where_empty_windows_leave_no_mean_margin(tiny_train_h5):
         assert pooled == pytest.approx(margin_closed(scores["continuous"]["psnr_pooled"],
                                                      scores["zero_floor"]["psnr_pooled"],
                                                      scores["truth"]["continuous"]["psnr_pooled"]))
+
+
+def _with_truth(src, dst, **changes):
+    """A copy of training set ``src`` whose provenance truth record has ``changes``."""
+    import json
+    import shutil
+
+    import h5py
+
+    shutil.copy(src, dst)
+    with h5py.File(dst, "r+") as f:
+        prov = json.loads(f["provenance"][()])
+        prov["truth"].update(changes)
+        del f["provenance"]
+        f["provenance"] = json.dumps(prov)
+    return dst
+
+
+def test_render_grid_joins_the_twins_renders_linearly(tiny_train_h5, tmp_path):
+    """A camera twin that rendered every ``period`` only: on grid points the reference is the
+    plain one; between them each pixel's log is linear, so half a grid step changes by half."""
+    from evdnerf_ros.errors import EvdnerfError
+
+    with TrainingSet(tiny_train_h5) as ts:
+        views, origin = ts.views, ts.provenance["truth"]["scene_time_at_origin_ns"]
+        t0 = ts.time_range[0]
+    period = 40_000_000
+    # grid points at common time t0 in every view (scene time t0 + origin)
+    grid = {"period_ns": period, "scene_ns": {v: int(origin[v]) + int(t0) for v in views}}
+    path = _with_truth(tiny_train_h5, tmp_path / "grid.h5", render_grid=grid)
+    with TrainingSet(tiny_train_h5) as plain_set, TrainingSet(path) as grid_set:
+        plain, _ = TrueScene.of(plain_set)
+        twin, why = TrueScene.of(grid_set)
+        assert twin is not None, why
+        view = grid_set.val_views[0]
+        a = int(t0) + 8 * period                    # mid-motion
+        on_grid = [(a, a + period), (a + period, a + 3 * period)]
+        np.testing.assert_allclose(twin.log_changes(view, on_grid), plain.log_changes(view, on_grid), atol=1e-6)
+        [step] = plain.log_changes(view, [(a, a + period)])
+        [half] = twin.log_changes(view, [(a, a + period // 2)])
+        np.testing.assert_allclose(half, 0.5 * step, atol=1e-5)
+        [exact_half] = plain.log_changes(view, [(a, a + period // 2)])
+        assert np.abs(exact_half - 0.5 * step).max() > 0.05      # the motion is not linear in log
+    del grid["scene_ns"][view]
+    path = _with_truth(tiny_train_h5, tmp_path / "partial.h5", render_grid=grid)
+    with TrainingSet(path) as grid_set:
+        twin, _ = TrueScene.of(grid_set)
+        with pytest.raises(EvdnerfError, match=f"view {view}: no render grid"):
+            twin.log_changes(view, [(a, a + period)])
+
+
+def test_convert_records_the_twins_render_grid():
+    from evdnerf_ros.session.convert import _truth_record
+
+    source = {"kind": "capture", "rig": "virtual", "scene_ref": "fork", "supersample": 1}
+    views = {"a": {"offset_ns": 500, "ground_truth_clock_offset_ns": 200, "ground_truth_sensor_zero_scene_ns": -7},
+             "b": {"offset_ns": 900, "ground_truth_clock_offset_ns": 100, "ground_truth_sensor_zero_scene_ns": 3}}
+    record, why = _truth_record(source, views, None, frame_ns=8_000_000)
+    assert why == "" and record["scene_time_at_origin_ns"] == {"a": 300, "b": 800}
+    assert record["render_grid"] == {"period_ns": 8_000_000, "scene_ns": {"a": -7, "b": 3}}
+    # a view without its sensor zero, or no render period: the reference renders at exact times
+    views["b"]["ground_truth_sensor_zero_scene_ns"] = None
+    assert "render_grid" not in _truth_record(source, views, None, frame_ns=8_000_000)[0]
+    assert "render_grid" not in _truth_record(source, views, None)[0]
+    # a simulated session renders every time it is asked
+    assert "render_grid" not in _truth_record({"kind": "simulation", "scene_ref": "fork"}, views, None,
+                                              frame_ns=8_000_000)[0]

@@ -587,6 +587,7 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
                 prov_views[v.name] = {
                     "bag": str(Path(v.bag).resolve()), "split": v.split, "offset_ns": plan.offset_ns,
                     "sync": v.sync, "ground_truth_clock_offset_ns": (v.ground_truth or {}).get("clock_offset_ns"),
+                    "ground_truth_sensor_zero_scene_ns": (v.ground_truth or {}).get("sensor_zero_scene_ns"),
                     "moving_camera": plan.moving,
                     **{k: plan.stats[k] for k in ("events_decoded", "dropped_odd_edge", "outside_crop")},
                 }
@@ -604,7 +605,12 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
                 "intrinsics_source": options.intrinsics, "poses_source": options.poses, "topics": topics,
                 "views": prov_views,
             }
-            truth, no_truth = _truth_record(session.data.get("source"), prov_views, session.data.get("options"))
+            frame_ns = (((session.data.get("rig") or {}).get("virtual") or {})).get("frame_ns")
+            if frame_ns is not None and (isinstance(frame_ns, bool) or not isinstance(frame_ns, int) or frame_ns <= 0):
+                raise InputError(f"{session_yaml_path(root)}: rig.virtual.frame_ns must be a whole number of ns "
+                                 f"> 0 (the camera twin's render period), got {frame_ns!r}")
+            truth, no_truth = _truth_record(session.data.get("source"), prov_views, session.data.get("options"),
+                                            frame_ns=frame_ns)
             if truth is not None:
                 provenance["truth"] = truth
             elif no_truth:              # a session that knows its scene, but not every view's time in it
@@ -776,14 +782,19 @@ class _BackgroundAppender:
 # =========================================================================== entry points
 
 
-def _truth_record(source: dict | None, views: dict, options: dict | None) -> tuple[dict | None, str]:
+def _truth_record(source: dict | None, views: dict, options: dict | None, *,
+                  frame_ns=None) -> tuple[dict | None, str]:
     """What evaluation needs to render the true scene (evdnerf_ros.eval.truth), or (None, why
     not; "" for a session that does not know its scene, e.g. a real capture). Two kinds of
     session know it: a simulated one (rendered at options.supersample) and one captured on the
     virtual rig (``source.rig: virtual``; its camera twin rendered ``source.scene_ref`` at
     ``source.supersample``). Both write ``ground_truth.clock_offset_ns`` as the view clock's
     reading at scene time 0 (the view clock reads scene time + clock offset), so the scene time
-    at the common origin is offset - clock offset, whichever way the offsets were found."""
+    at the common origin is offset - clock offset, whichever way the offsets were found.
+    The twin rendered only every ``frame_ns`` of its sensor clock (``rig.virtual.frame_ns``),
+    joined linearly in log; with every view's ``ground_truth.sensor_zero_scene_ns`` that grid
+    goes into the record as ``render_grid`` (period, and per view the scene time of a grid
+    point), so that the reference renders what the twin did."""
     source = source or {}
     kind = source.get("kind")
     if kind == "simulation":
@@ -803,8 +814,13 @@ def _truth_record(source: dict | None, views: dict, options: dict | None) -> tup
         return None, (f"no true scene: session.yaml has no ground_truth.clock_offset_ns for {which}, so the "
                       f"scene's time there is unknown ({fix})")
     origin = {name: int(v["offset_ns"]) - int(v["ground_truth_clock_offset_ns"]) for name, v in views.items()}
-    return {"scene": str(source["scene_ref"]), "supersample": int(supersample),
-            "scene_time_at_origin_ns": origin}, ""
+    record = {"scene": str(source["scene_ref"]), "supersample": int(supersample),
+              "scene_time_at_origin_ns": origin}
+    zeros = {name: v.get("ground_truth_sensor_zero_scene_ns") for name, v in views.items()}
+    if kind == "capture" and frame_ns and all(z is not None for z in zeros.values()):
+        record["render_grid"] = {"period_ns": int(frame_ns),
+                                 "scene_ns": {name: int(z) for name, z in zeros.items()}}
+    return record, ""
 
 
 def run_convert(session_dir, out, options: ConvertOptions | None = None, *, overwrite: bool = False,

@@ -254,7 +254,7 @@ def _check_view(root: Path, v, where: Where, seen: set) -> ViewRecord:
     frames = text_in(v, "frames", where)
     gt = mapping(v.get("ground_truth"), where / "ground_truth", optional=True)
     if gt is not None:
-        for k in ("clock_offset_ns", "device_offset_ns"):
+        for k in ("clock_offset_ns", "device_offset_ns", "sensor_zero_scene_ns"):
             _int_ns(gt, k, where / "ground_truth")
     sync = mapping(v.get("sync"), where / "sync", optional=True)
     if sync is not None:
