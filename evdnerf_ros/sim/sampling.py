@@ -348,8 +348,10 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
             if dlog_limit is not None:
                 ok &= np.abs(Lb - La) <= dlog_limit
             if travel_limit is not None:
-                pieces, which = np.unique(np.stack([lo, hi]), axis=1, return_inverse=True)
-                far = np.array([travel_px(int(ta), int(tb)) > travel_limit for ta, tb in times(pieces).T])
+                # one travel per distinct piece (a flat key: np.unique along an axis is slow)
+                keys, which = np.unique(lo * np.int64(n + 1) + hi, return_inverse=True)
+                far = np.array([travel_px(int(ta), int(tb)) > travel_limit
+                                for ta, tb in zip(times(keys // (n + 1)), times(keys % (n + 1)))])
                 stats.motion_splits += int(far.sum())
                 ok &= ~far[which.ravel()]
             if ok.any():
