@@ -241,8 +241,27 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: Se
     else:
         log("moving-camera view: skipped (a turntable capture records static views only)"
             if source.name == VIRTUAL_RIG else "moving-camera view: none in this session")
+    for split, scores in (("validation views", val), ("moving camera", moving)):
+        if scores is not None:
+            log(_verdict(split, _against_truth(scores)))
     summary["wall_seconds"] = round(time.perf_counter() - start, 1)
     return summary
+
+
+def _verdict(split: str, scores: dict) -> str:
+    """One line for the user: is the field's event stream closer to the recording than no events?
+    (pooled over the windows, where the protocol's per-window mean may have no margin)."""
+    p = scores["psnr_pooled"]
+    field, floor, truth = p["field"], p["floor"], p["true_scene"]
+    margin = (scores.get("margin_closed") or {}).get("pooled")
+    where = (f"{field:.2f} dB against {floor:.2f} for predicting no events"
+             + (f" and {truth:.2f} for the true scene" if truth is not None else ""))
+    if field <= floor:
+        return (f"{split}: the field's events are further from the recording than no events at all "
+                f"({where}, pooled over the windows): the README's \"Dynamic radiance fields\" section says why "
+                "and what was tried")
+    return (f"{split}: the field's events are closer to the recording than no events ({where}, pooled"
+            + (f"; {100 * margin:.0f} % of the margin to the true scene closed)" if margin is not None else ")"))
 
 
 def _against_truth(scores: dict) -> dict:

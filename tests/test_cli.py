@@ -309,3 +309,17 @@ def test_other_exceptions_in_finalizers_are_reported_as_usual(monkeypatch, capsy
     monkeypatch.setattr(sys, "unraisablehook", _redeliver_swallowed_interrupt)
     _RaisesInFinalizer(ValueError("lost in a finalizer"))
     assert "lost in a finalizer" in capsys.readouterr().err
+
+
+def test_demo_verdict_says_whether_the_field_beats_no_events():
+    from evdnerf_ros.demo import _verdict
+
+    def scores(field, floor, truth, margin):
+        return {"psnr_pooled": {"field": field, "floor": floor, "true_scene": truth},
+                "margin_closed": {"pooled": margin}}
+
+    worse = _verdict("validation views", scores(27.48, 31.04, 35.29, -0.84))
+    assert worse.startswith("validation views: the field's events are further") and "27.48 dB against 31.04" in worse
+    better = _verdict("moving camera", scores(33.0, 31.0, 35.0, 0.5))
+    assert "closer to the recording" in better and "50 % of the margin" in better
+    assert "true scene" not in _verdict("validation views", scores(33.0, 31.0, None, None))
