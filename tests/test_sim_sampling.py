@@ -392,3 +392,63 @@ def test_box_travel_bounds_what_a_moving_camera_sees_move():
     real = np.linalg.norm(np.diff(np.array(uv), axis=0), axis=1).sum()
     assert 0.0 < real <= travel.total_px
     assert travel(2_000_000, 5_000_000) <= travel.total_px
+
+
+def test_per_pixel_motion_guard_splits_only_where_the_content_can_reach():
+    """``reach_px``: a piece that travels too far is split for the pixels in its reach box only;
+    pixels the moving content cannot reach (here a flat strip beside the swing) keep their long
+    pieces, with the same events and fewer values rendered. A box that misses the content
+    (a wrong caller) loses the swing: the box is what decides."""
+    from evdnerf_ros.sim.sampling import simulate_pixels
+
+    span, w, strip = 100_000_000, 16, 8
+    min_step = span // 256
+    scene = Swing(span, w)
+
+    def pixels(t, pix):
+        flat = np.exp(-1.5) - LOG_EPS
+        return np.array([scene(int(tt))[0, p] if p < w else flat for tt, p in zip(t, pix)])
+
+    def run(reach=None):
+        return simulate_pixels(pixels, 0, span, EventGenerator(w + strip, 1), min_step_ns=min_step,
+                               max_step_ns=span, travel_px=scene.travel, reach_px=reach)
+
+    def box(x0, x1):
+        return lambda a, b: np.tile([x0, 0.0, x1, 0.0], (np.size(a), 1))
+
+    everywhere, st_all = run()
+    ev, st = run(box(0.0, w - 1.0))
+    assert ev.size > 0 and np.array_equal(ev, everywhere)
+    assert st.pixels_rendered < st_all.pixels_rendered
+    wrong, _ = run(box(float(w), w + strip - 1.0))
+    assert wrong.size < ev.size / 2
+    unbounded, st_inf = run(lambda a, b: np.tile([-np.inf, -np.inf, np.inf, np.inf], (np.size(a), 1)))
+    assert np.array_equal(unbounded, everywhere) and st_inf.pixels_rendered == st_all.pixels_rendered
+
+
+def test_box_reach_holds_every_point_of_the_box_while_the_camera_moves():
+    """``ImageTravel.reach``: every point of the box, projected at any time of a piece, lies in the
+    piece's reach box; a box reaching behind the camera is unbounded; with a background at
+    infinity there is no reach box (anything may change anywhere)."""
+    from evdnerf_ros.geometry.camera import PinholeCamera, look_at
+    from evdnerf_ros.sim.motion import box_travel
+
+    cam = PinholeCamera.from_fov(64, 48, 40.0)
+    box = np.array([[-0.2, -0.2, -0.2], [0.2, 0.2, 0.2]])
+    times = np.arange(0, 101, dtype=np.int64) * 100_000
+    poses = np.stack([look_at([3.0 * np.sin(a), -3.0 * np.cos(a), 0.5], [0.3, 0.0, 0.0])
+                      for a in np.radians(np.linspace(0.0, 30.0, times.size))])
+    travel = box_travel(box, cam, times, poses, infinity=False)
+    rng = np.random.default_rng(0)
+    points = np.c_[rng.uniform(box[0], box[1], (200, 3)), np.ones(200)]
+    for a, b in ((0, 2_000_000), (3_050_000, 3_450_000), (5_000_000, 10_000_000)):
+        [(x0, y0, x1, y1)] = travel.reach(np.array([a]), np.array([b]))
+        assert x1 - x0 < 64 or b - a > 4_000_000         # bounded where the motion is short
+        for k in np.flatnonzero((times >= a) & (times <= b)):
+            x = (np.linalg.inv(poses[k]) @ points.T)[:3]
+            u, v = cam.fx * x[0] / x[2] + cam.cx, cam.fy * x[1] / x[2] + cam.cy
+            assert np.all((u >= x0) & (u <= x1) & (v >= y0) & (v <= y1))
+    inside = np.stack([look_at([0.0, 0.0, 0.0], [0.0, 1.0, 0.0])] * 3)          # the camera in the box
+    [(x0, _, x1, _)] = box_travel(box, cam, times[:3], inside, infinity=False).reach(np.array([0]), np.array([1]))
+    assert x0 == -np.inf and x1 == np.inf
+    assert box_travel(box, cam, times, poses, infinity=True).reach(np.array([0]), np.array([1])) is None

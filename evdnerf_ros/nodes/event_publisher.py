@@ -425,7 +425,8 @@ class EventPublisher(Node):
                             max_step_ns=min(p["max_step_ns"], tb - t), travel_px=travel,
                             max_travel_px=p["max_travel_px"])
             if per_pixel:
-                events, st = simulate_pixels(self.render_pixels, t, tb, self.generator, **adaptive)
+                events, st = simulate_pixels(self.render_pixels, t, tb, self.generator, **adaptive,
+                                             reach_px=None if travel is None else travel.reach)
             elif p["adaptive"]:
                 events, st = simulate_renderer(self.render, t, tb, self.generator, **adaptive)
             else:

@@ -21,6 +21,9 @@ with their casters but, on a surface at a grazing angle to the light, faster tha
 ``box_travel`` is the same bound for a trained field seen by a moving camera (the event
 publisher): all it shows is a static box (and, with a learned background, what lies at
 infinity); the field's own motion inside the box is unknown, so ``max_step`` must stay below it.
+Without a background at infinity it also knows where the box can be seen (``ImageTravel.reach``):
+the per-pixel sampler then splits a piece that travels too far only for the pixels the box
+can reach during it; every other pixel shows the flat world throughout.
 """
 
 from __future__ import annotations
@@ -37,17 +40,36 @@ SAMPLES_PER_KNOT_INTERVAL = 8
 
 
 class ImageTravel:
-    """``travel(a, b)``: bound on the image travel (pixels) of any point during [a, b]."""
+    """``travel(a, b)``: bound on the image travel (pixels) of any point during [a, b].
+    With ``boxes`` ((K, 4) x0 y0 x1 y1 per sample time: the image box of everything that can
+    change, NaN where it is not bounded), ``reach(a, b)`` says where a change may show."""
 
-    def __init__(self, times: np.ndarray, cumulative_px: np.ndarray):
+    def __init__(self, times: np.ndarray, cumulative_px: np.ndarray, boxes: np.ndarray | None = None):
         self.times = times
         self.cumulative = cumulative_px
+        self.boxes = boxes
+
+    def _span(self, a, b) -> tuple[np.ndarray, np.ndarray]:
+        # whole sample intervals touching [a, b]: conservative between samples
+        i = np.maximum(np.searchsorted(self.times, a, side="right") - 1, 0)
+        j = np.minimum(np.searchsorted(self.times, b, side="left"), self.times.size - 1)
+        return i, j
 
     def __call__(self, a: int, b: int) -> float:
-        # whole sample intervals touching [a, b]: conservative between samples
-        i = max(int(np.searchsorted(self.times, a, side="right")) - 1, 0)
-        j = min(int(np.searchsorted(self.times, b, side="left")), self.times.size - 1)
+        i, j = self._span(a, b)
         return float(self.cumulative[j] - self.cumulative[i])
+
+    def reach(self, a, b) -> np.ndarray | None:
+        """(N, 4) x0 y0 x1 y1 (pixels, inclusive; +-inf: anywhere) of the pieces [a[k], b[k]]:
+        the image box of what can change at the last sample time at or before a, grown by the
+        travel from there to b, so every pixel whose value can change during the piece is in it;
+        None without boxes."""
+        if self.boxes is None:
+            return None
+        i, j = self._span(np.asarray(a, np.int64), np.asarray(b, np.int64))
+        grow = (self.cumulative[j] - self.cumulative[i])[:, None] + 1.0      # + a pixel's footprint
+        box = self.boxes[i] + grow * np.array([-1.0, -1.0, 1.0, 1.0])
+        return np.where(np.isnan(box), np.array([-np.inf, -np.inf, np.inf, np.inf]), box)
 
     @property
     def total_px(self) -> float:
@@ -127,7 +149,17 @@ def box_travel(box, camera, times: np.ndarray, poses: np.ndarray, *, infinity: b
     trace = np.einsum("tij,tij->t", Rc[:-1], Rc[1:])                          # trace(R_a^T R_b)
     cam_rot = np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)) if infinity else 0.0
     steps = np.maximum(np.minimum(ang, math.pi), cam_rot) * _magnification(camera)
-    return ImageTravel(np.asarray(times, np.int64), np.concatenate([[0.0], np.cumsum(steps)]))
+    # without a background at infinity only the box can change pixels: the bounding box of its
+    # corners' projections holds its image (a box wholly in front of the camera projects to a
+    # convex set); a corner at or behind the image plane leaves it unbounded
+    boxes = None
+    if not infinity:
+        z = pc[..., 2]
+        u = camera.fx * pc[..., 0] / np.where(z > 0, z, 1.0) + camera.cx
+        v = camera.fy * pc[..., 1] / np.where(z > 0, z, 1.0) + camera.cy
+        boxes = np.stack([u.min(axis=1), v.min(axis=1), u.max(axis=1), v.max(axis=1)], axis=1)
+        boxes[np.any(z <= 1e-9, axis=1)] = np.nan
+    return ImageTravel(np.asarray(times, np.int64), np.concatenate([[0.0], np.cumsum(steps)]), boxes)
 
 
 def _rotation_angle(R: np.ndarray) -> float:

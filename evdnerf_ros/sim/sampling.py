@@ -264,10 +264,13 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
                     min_step_ns: int = DEFAULT_MIN_STEP_NS, max_step_ns: int = DEFAULT_MAX_STEP_NS,
                     travel_px: Callable[[int, int], float] | None = None,
                     max_travel_px: float = DEFAULT_MAX_TRAVEL_PX,
+                    reach_px: Callable[[np.ndarray, np.ndarray], np.ndarray | None] | None = None,
                     progress: Callable[[int], None] | None = None):
     """Adaptive sampling refined pixel by pixel; ``(events, SamplingStats)`` as
     :func:`simulate_renderer` (``travel_px`` / ``max_travel_px``: its motion guard: a piece
-    travelling further is split for every pixel, whatever its midpoint says).
+    travelling further is split for every pixel, whatever its midpoint says; with
+    ``reach_px(a, b)`` -> (N, 4) x0 y0 x1 y1 per piece [a[k], b[k]] (``motion.ImageTravel.reach``:
+    the image box outside which no pixel changes during it) only for the pixels in that box).
 
     ``render_pixels(t_ns, pixels)`` -> linear intensity of row-major pixel ``pixels[i]`` at
     time ``t_ns[i]`` (both (M,) int64; many times in one call).  The grid, the top pieces and
@@ -350,10 +353,15 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
             if travel_limit is not None:
                 # one travel per distinct piece (a flat key: np.unique along an axis is slow)
                 keys, which = np.unique(lo * np.int64(n + 1) + hi, return_inverse=True)
-                far = np.array([travel_px(int(ta), int(tb)) > travel_limit
-                                for ta, tb in zip(times(keys // (n + 1)), times(keys % (n + 1)))])
+                ta, tb = times(keys // (n + 1)), times(keys % (n + 1))
+                far = np.array([travel_px(int(a), int(b)) > travel_limit for a, b in zip(ta, tb)])
                 stats.motion_splits += int(far.sum())
-                ok &= ~far[which.ravel()]
+                forced = far[which.ravel()]
+                box = reach_px(ta, tb) if reach_px is not None and forced.any() else None
+                if box is not None:                 # a pixel the content cannot reach stays flat
+                    x, y, b = pix % generator.width, pix // generator.width, box[which.ravel()]
+                    forced &= (x >= b[:, 0]) & (x <= b[:, 2]) & (y >= b[:, 1]) & (y <= b[:, 3])
+                ok &= ~forced
             if ok.any():
                 stats.intervals += int(ok.sum())
                 stats.max_deviation_c = max(stats.max_deviation_c, float(dev[ok].max()) / c_ref)
