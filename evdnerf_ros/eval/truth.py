@@ -18,9 +18,11 @@ window the events came from, not the whole sensor.  A virtual-rig capture's came
 only on a grid of its sensor clock (``render_grid``: period and, per view, the scene time of a
 grid point) and joined its renders linearly in log; the reference does the same (on the
 demo's 48x36 fork its squared error against the events, as a multiple of the floor's, fell
-from 1.2x to 0.5x at 128 windows, from 3.1-3.4x to 0.55-0.64x at 256).  The twin's servo follows the firmware's 50 Hz commands joined linearly,
-not the smooth profile rendered here (modelled, that moved the same ratio by 0.02 only).  A session that knows its scene but not
-every view's time in it gets ``truth_note`` instead (why not), which :meth:`TrueScene.of` reports.
+from 1.2x to 0.5x at 128 windows, from 3.1-3.4x to 0.55-0.64x at 256).  The twin's servo
+follows the firmware's 50 Hz commands joined linearly, not the smooth profile rendered here
+(modelled ad hoc, that moved the same ratio by 0.02 only).  A session that knows its scene but
+not every view's time in it gets ``truth_note`` instead (why not), which :meth:`TrueScene.of`
+reports.
 """
 
 from __future__ import annotations
