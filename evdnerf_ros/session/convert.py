@@ -503,6 +503,7 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
         raise OutputExistsError(out)              # before the (long) work, not after it
     session = load_session(session_dir)
     root = session.root
+    frame_ns = _twin_frame_ns(session)             # checked before any work
     offsets, offsets_source = resolve_offsets(session, options.offsets)
     topics = _topics(session, options)
     s = options.downsample
@@ -605,10 +606,6 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
                 "intrinsics_source": options.intrinsics, "poses_source": options.poses, "topics": topics,
                 "views": prov_views,
             }
-            frame_ns = (((session.data.get("rig") or {}).get("virtual") or {})).get("frame_ns")
-            if frame_ns is not None and (isinstance(frame_ns, bool) or not isinstance(frame_ns, int) or frame_ns <= 0):
-                raise InputError(f"{session_yaml_path(root)}: rig.virtual.frame_ns must be a whole number of ns "
-                                 f"> 0 (the camera twin's render period), got {frame_ns!r}")
             truth, no_truth = _truth_record(session.data.get("source"), prov_views, session.data.get("options"),
                                             frame_ns=frame_ns)
             if truth is not None:
@@ -780,6 +777,16 @@ class _BackgroundAppender:
 
 
 # =========================================================================== entry points
+
+
+def _twin_frame_ns(session) -> int | None:
+    """``rig.virtual.frame_ns`` of a virtual-rig capture (the camera twin's render period), or
+    None; anything but a whole number of ns > 0 is refused."""
+    frame_ns = ((session.data.get("rig") or {}).get("virtual") or {}).get("frame_ns")
+    if frame_ns is not None and (isinstance(frame_ns, bool) or not isinstance(frame_ns, int) or frame_ns <= 0):
+        raise InputError(f"{session_yaml_path(session.root)}: rig.virtual.frame_ns must be a whole number of ns "
+                         f"> 0 (the camera twin's render period), got {frame_ns!r}")
+    return frame_ns
 
 
 def _truth_record(source: dict | None, views: dict, options: dict | None, *,
