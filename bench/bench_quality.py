@@ -70,6 +70,7 @@ LEVERS = {
     "samples-48": {"n_samples": 48},
     "event-rays-0.8": {"event_ray_fraction": 0.8},
     "lr-0.005": {"lr": 0.005},
+    "hinge": {"backbone": "hinge"},
 }
 #: --demo's levers by default (the demo's config already sets windows and 32 samples).
 DEMO_LEVERS = ["baseline", "lr-0.01", "lr-0.005", "spans-0.8", "samples-48", "time-res-32", "event-rays-0.8"]

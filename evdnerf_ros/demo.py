@@ -52,6 +52,21 @@ OPTIONS = SimulationOptions(views=4, val_views=2, moving_views=1, resolution=(96
 TRAIN_CONFIG = {"windows": [16, 32], "window_switch": [0.5], "n_samples": 32, "eval_every": 100}
 TRAIN_MINUTES = 2.0
 
+
+def _backbone(train_h5, log) -> str:
+    """``hinge`` where the rig's joint is known (the fork's servo, from the set's scene: twice
+    the validation margin of ``planes`` in the same 2 minutes), else ``planes``."""
+    from .io.trainingset import TrainingSet
+    from .train.joint import hinged_part
+
+    with TrainingSet(train_h5) as ts:
+        try:
+            hinged_part(ts)
+        except InputError as exc:
+            log(f"no joint for the hinge field ({exc}): the planes field learns the motion too")
+            return "planes"
+    return "hinge"
+
 # (file name, encoding, carries trigger events): every container the demo round-trips through.
 CONVERSIONS = [
     ("events_evt3.raw", "evt3", True),
@@ -217,8 +232,10 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: Se
                                "dl_abs_sum_view0": float(abs(d_l).sum())}
 
     n_train = sum(v["split"] == "train" and not v.get("moving_arc_deg") for v in views)
-    log(f"training the planes field for {train_minutes:g} min on the events of {n_train} views")
-    trained = run_train(out / "train.h5", out / "run", config=dict(TRAIN_CONFIG),
+    backbone = _backbone(out / "train.h5", log)
+    summary["backbone"] = backbone
+    log(f"training the {backbone} field for {train_minutes:g} min on the events of {n_train} views")
+    trained = run_train(out / "train.h5", out / "run", config=dict(TRAIN_CONFIG, backbone=backbone),
                         minutes=train_minutes, eval_fn=validation_eval(), log=log)
     result = run_eval(out / "run", out / "train.h5", factors=(1, 4),
                       image_path=out / "run" / "eval_events.png", log=log)

@@ -154,6 +154,21 @@ def _dense_planes_field(seed):
     return field
 
 
+def _dense_hinge_field(seed):
+    """A small hinge field dense enough to show, its part swinging half a turn over the span."""
+    from evdnerf_ros.field import make_field
+
+    torch.manual_seed(seed)
+    joint = {"pivot": [0.0, 0.1, -0.2], "axis": [0.3, 0.0, 1.0], "half": [0.55, 0.55, 0.55],
+             "angles_rad": [0.0, 1.0, 3.0]}
+    field = make_field("hinge", joint=joint, resolutions=[8], features=4, hidden=8).eval()
+    with torch.no_grad():
+        for part in (field.static, field.moving):
+            for sp in part.planes:
+                sp.uniform_(1.0, 3.0)
+    return field
+
+
 @pytest.mark.parametrize("world", ["field", "flat"])
 def test_field_renderer_places_only_samples_near_the_cells_and_draws_the_same(world):
     """With an occupancy grid (and, flat, a dynamic region) smaller than the box, only the samples
@@ -191,15 +206,16 @@ def test_field_renderer_places_only_samples_near_the_cells_and_draws_the_same(wo
         assert np.ptp(want) > 0.01
 
 
+@pytest.mark.parametrize("backbone", ["planes", "hinge"])
 @pytest.mark.parametrize("world", ["field", "flat"])
-def test_render_pixels_draws_pixels_of_many_poses_and_times_as_render(world):
+def test_render_pixels_draws_pixels_of_many_poses_and_times_as_render(world, backbone):
     """``render_pixels`` (the per-pixel sampler's batch): pixels of several poses and times in one
     call, in any order, equal to the images ``render`` draws, and it checks what it is given."""
     from evdnerf_ros.field.dynamic_region import DynamicRegion
     from evdnerf_ros.field.occupancy import OccupancyGrid
     from evdnerf_ros.field.renderer import FieldRenderer
 
-    field = _dense_planes_field(6)
+    field = _dense_planes_field(6) if backbone == "planes" else _dense_hinge_field(6)
     box = [[-0.6, -0.5, -0.4], [0.5, 0.6, 0.7]]
     cells = torch.zeros(10, 10, 10, dtype=torch.bool)
     cells[2:8, 2:6, 2:8] = True

@@ -92,6 +92,11 @@ FIELD_KEYS = {
               "canonical_depth": (1, 64, "int?"), "canonical_width": (1, 65536, "int?"),
               "density_activation": ("softplus", "sigmoid", "relu"),
               "zero_deform_at_t0": ("bool",)},
+    # joint: the rig's joint (train.joint fills it from the training set; the field checks it)
+    "hinge": {"resolutions": ("list", 1, 8192, 16), "features": (1, 4096, "int"), "hidden": (1, 65536, "int"),
+              "hidden_layers": (0, 64, "int"), "density_activation": ("softplus", "trunc_exp"),
+              "density_bias": (-1e3, 1e3, "float"), "init_range": ("pair", -1e3, 1e3),
+              "seed": (0, 2 ** 63 - 1, "int?"), "shading": ("bool",)},
 }
 
 def number(value, where: Where, low, high, kind: str, low_open: bool = False,
@@ -217,14 +222,21 @@ def _field_sizes(cfg) -> dict:
 def field_parameters(cfg) -> int:
     """Number of trainable parameters of the configured field (closed form)."""
     f = _field_sizes(cfg)
-    if cfg.backbone == "planes":
-        res, feat, t = [int(r) for r in f["resolutions"]], int(f["features"]), int(f["time_resolution"])
+    if cfg.backbone in ("planes", "hinge"):
+        res, feat = [int(r) for r in f["resolutions"]], int(f["features"])
+        t = int(f["time_resolution"]) if cfg.backbone == "planes" else 0
         n = sum(3 * feat * (r * r + t * r) for r in res)
         d, hidden = feat * len(res), int(f["hidden"])
         for _ in range(int(f["hidden_layers"])):
             n += d * hidden + hidden
             d = hidden
-        return n + d * 2 + 2 + background_parameters(cfg)
+        n += d * 2 + 2
+        if cfg.backbone == "hinge":
+            # a static and a moving triplane, each with its head; the moving head's first layer
+            # also reads cos and sin of the joint angle
+            first = int(f["hidden"]) if int(f["hidden_layers"]) else 2
+            n = 2 * n + (2 * first if f["shading"] else 0)
+        return n + background_parameters(cfg)
     depth, width = int(f["depth"]), int(f["width"])
     cd = depth if f["canonical_depth"] is None else int(f["canonical_depth"])
     cw = width if f["canonical_width"] is None else int(f["canonical_width"])
@@ -249,7 +261,7 @@ def bytes_per_sample(cfg) -> int:
     Calibrated on CPU: planes (default sizes) ~5.0 KB measured, 5.6 KB estimated; dnerf
     8 x 256 ~43 KB measured, 49 KB estimated."""
     f = _field_sizes(cfg)
-    if cfg.backbone == "planes":
+    if cfg.backbone in ("planes", "hinge"):
         scales, feat = len(f["resolutions"]), int(f["features"])
         hidden = int(f["hidden"]) * max(1, int(f["hidden_layers"]))
         return 4 * (20 * scales * feat + 6 * hidden + 64)

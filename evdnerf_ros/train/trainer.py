@@ -48,6 +48,7 @@ from ..limits import check_number
 from .checkpoint import (CheckpointError, global_rng_states, load_checkpoint, save_checkpoint,
                          set_global_rng_states)
 from .config import TrainConfig, _normal, field_from_config, resolve_config
+from .joint import joint_from_training_set
 from .interrupts import DeferredInterrupts
 from .losses import bin_loss, mse_loss, no_event_hinge
 from .ranges import NUMBERS, check_training_memory
@@ -114,6 +115,8 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.box = np.asarray(cfg.box, np.float64) if cfg.box is not None else \
             default_box(train_set, cfg.box_fraction)
+        if cfg.backbone == "hinge" and "joint" not in cfg.field:
+            cfg.field = {**cfg.field, "joint": joint_from_training_set(train_set, self.box)}
         self.field = field_from_config(cfg).to(self.device)
         self.params = [p for p in self.field.parameters() if p.requires_grad]
         groups = [{"params": self.params, "lr_scale": 1.0}]

@@ -1,0 +1,128 @@
+"""The ``hinge`` field: a static world and one rigid part on the rig's known joint."""
+
+import numpy as np
+import pytest
+import torch
+
+from evdnerf_ros.errors import InputError
+from evdnerf_ros.field import HingeField, make_field
+from evdnerf_ros.sim.scene import load_scene
+
+BOX = np.array([[-1.5, -1.0, -1.3], [1.5, 1.2, 0.8]])
+
+
+def _normalise(p):
+    return (np.asarray(p) - BOX[0]) / (BOX[1] - BOX[0]) * 2.0 - 1.0
+
+
+def _joint(angles, axis=(1.0, 0.0, 0.0), pivot=(0.0, 0.0, -0.95)):
+    return {"pivot": _normalise(pivot).tolist(), "axis": list(axis), "half": ((BOX[1] - BOX[0]) / 2).tolist(),
+            "angles_rad": list(angles)}
+
+
+@pytest.mark.parametrize("t_scene_ms", [0, 250, 420, 700])
+def test_part_frame_undoes_the_scenes_hinge(t_scene_ms):
+    """A point of the fork, carried by the scene's own hinge to time t, maps back to where it
+    was at angle 0 (an anisotropic box: the rotation is rigid in metres)."""
+    scene = load_scene("fork", check_cameras=False)
+    fork = scene.object("fork")
+    t = t_scene_ms * 1_000_000
+    angle = fork.motion.angle_rad(t)
+    field = HingeField(_joint([angle, angle], axis=fork.motion.axis, pivot=fork.motion.pivot))
+    rest = scene.transforms(-10 ** 9)["fork"]          # angle 0 before the servo starts
+    assert fork.motion.angle_rad(-10 ** 9) == 0.0
+    canonical = np.array([[0.0, 0.1, 0.3], [0.05, -0.12, -0.4], [0.0, 0.0, -0.95]])
+    world = (scene.transforms(t)["fork"] @ np.linalg.inv(rest) @ np.c_[canonical, np.ones(3)].T).T[:, :3]
+    back = field.part_frame(torch.tensor(_normalise(world), dtype=torch.float32), torch.tensor([0.3]))
+    metres = (back.numpy() + 1.0) / 2.0 * (BOX[1] - BOX[0]) + BOX[0]
+    np.testing.assert_allclose(metres, canonical, atol=1e-5)
+
+
+def test_angle_is_linear_between_samples_and_held_outside():
+    field = HingeField(_joint([0.0, 1.0, -1.0]))
+    got = field.angle(torch.tensor([0.0, 0.25, 0.5, 0.75, 1.0, -0.5, 2.0]))
+    np.testing.assert_allclose(got.numpy(), [0.0, 0.5, 1.0, 0.0, -1.0, 0.0, -1.0], atol=1e-6)
+
+
+def test_the_static_world_never_changes_and_the_part_moves_with_the_joint():
+    torch.manual_seed(0)
+    field = make_field("hinge", joint=_joint([0.0, np.pi / 2]), seed=3)
+    x = torch.rand(500, 3) * 2 - 1
+    feats = field.space_features(x)
+    d0, g0 = field.decode(feats, torch.tensor([0.0]))
+    d1, g1 = field.decode(feats, torch.tensor([1.0]))
+    assert not torch.allclose(d0, d1)                  # the part turned 90 degrees
+    ds, gs = field.decode_static(feats)
+    assert torch.all(d0 >= ds) and torch.all(d1 >= ds)  # static + moving density
+    # per-point times give the same as one shared time (the reuse pair equals forward)
+    dp, gp = field(x, torch.full((500, 1), 1.0))
+    torch.testing.assert_close(dp, d1)
+    torch.testing.assert_close(gp, g1)
+    # without a joint angle change nothing changes
+    still = make_field("hinge", joint=_joint([0.3, 0.3]), seed=3)
+    f = still.space_features(x)
+    torch.testing.assert_close(still.decode(f, torch.tensor([0.0]))[0], still.decode(f, torch.tensor([0.9]))[0])
+
+
+@pytest.mark.parametrize("bad, why", [({"angles_rad": [0.1]}, ">= 2 finite"), ({"axis": [0, 0, 0]}, "non-zero"),
+                                      ({"half": [1, 0, 1]}, "> 0"), ({"angles_rad": [0.0, float("nan")]}, "finite")])
+def test_a_bad_joint_is_a_clear_error(bad, why):
+    with pytest.raises(ValueError, match=why):
+        HingeField({**_joint([0.0, 1.0]), **bad})
+
+
+def test_the_joint_comes_from_the_training_sets_true_scene(tiny_train_h5):
+    from evdnerf_ros.io.trainingset import TrainingSet
+    from evdnerf_ros.train.joint import joint_from_training_set
+
+    scene = load_scene("fork", check_cameras=False)
+    fork = scene.object("fork")
+    with TrainingSet(tiny_train_h5) as ts:
+        joint = joint_from_training_set(ts, BOX, samples=65)
+        origin = int(np.median([int(v) for v in ts.provenance["truth"]["scene_time_at_origin_ns"].values()]))
+        t0, t1 = ts.time_range
+    np.testing.assert_allclose(joint["pivot"], _normalise(fork.motion.pivot))
+    np.testing.assert_allclose(joint["axis"], fork.motion.axis)
+    mid = t0 + (t1 - t0) // 2
+    assert joint["angles_rad"][32] == pytest.approx(fork.motion.angle_rad(mid + origin), abs=1e-9)
+    assert max(abs(a) for a in joint["angles_rad"]) > 0.5   # the swing is inside the span
+
+
+def test_a_set_without_a_scene_has_no_joint(tiny_train_h5, tmp_path):
+    import h5py
+    import json
+    import shutil
+
+    from evdnerf_ros.io.trainingset import TrainingSet
+    from evdnerf_ros.train.joint import joint_from_training_set
+
+    copy = tmp_path / "real.h5"
+    shutil.copy(tiny_train_h5, copy)
+    with h5py.File(copy, "r+") as f:
+        prov = json.loads(f["provenance"][()])
+        prov.pop("truth")
+        del f["provenance"]
+        f.create_dataset("provenance", data=json.dumps(prov))
+    with TrainingSet(copy) as ts, pytest.raises(InputError, match="backbone planes"):
+        joint_from_training_set(ts, BOX)
+
+
+def test_a_hinge_run_trains_saves_and_loads(tiny_train_h5, tmp_path):
+    """Trained a few iterations (the joint filled in from the set), saved, loaded back."""
+    from evdnerf_ros.train.run import TrainedRun
+    from evdnerf_ros.train.trainer import run_train
+
+    run_train(tiny_train_h5, tmp_path / "run", config={
+        "backbone": "hinge", "rays": 64, "n_samples": 16, "eval_every": 0, "log_every": 0,
+        "field": {"resolutions": [8, 16], "features": 4}}, iters=3, log=lambda *_: None, device="cpu")
+    run = TrainedRun.load(tmp_path / "run")
+    assert isinstance(run.field, HingeField)
+    assert len(run.field.joint["angles_rad"]) > 2 and "joint" in (tmp_path / "run" / "config.yaml").read_text()
+    # the joint is part of the config: a fresh field from it takes the trained weights
+    from evdnerf_ros.train.config import field_from_config
+
+    fresh = field_from_config(run.config)
+    fresh.load_state_dict(run.field.state_dict())
+    x = torch.rand(50, 3) * 2 - 1
+    with torch.no_grad():
+        torch.testing.assert_close(fresh(x, torch.full((50, 1), 0.4)), run.field(x, torch.full((50, 1), 0.4)))
