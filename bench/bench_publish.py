@@ -27,7 +27,8 @@ Writes ``publish.json`` and ``publish.png`` into ``--out``.
   parameters: leave-out, static reuse, static world, per-pixel sampling, min step, chunk,
   baking, tolerance) against the simulator's events along the same path (event-image PSNR, zero
   floor, true render, counts per polarity, first-event timing) and its RTF; RTF against
-  resolution for the static view.
+  resolution for the static view. ``--backbone hinge``: the same with a ``hinge`` run (stored as
+  ``published_vs_true_hinge``, drawn beside the planes run's).
 * **DDS throughput**: a writer process and a reader process on loopback (Cyclone DDS,
   localhost only), EventPacket messages of 64 KiB and 1 MiB, reliable keep-last 64; the
   reader deserialises every message (rosbags on the fast path, IdlStruct on the slow
@@ -148,23 +149,23 @@ def bench_leave_out(tmp, quick):
     return res
 
 
-def trained_fork_run(work: Path, minutes: float = 2.0) -> tuple[Path, Path]:
+def trained_fork_run(work: Path, minutes: float = 2.0, backbone: str = "planes") -> tuple[Path, Path]:
     """A small trained run for the published-vs-true curves: the fork simulated at 64x64 (8 + 2
-    views, 2x2 supersampling, ground-truth offsets), trained ``minutes`` with the default config.
-    Reused when WORK already holds it."""
+    views, 2x2 supersampling, ground-truth offsets), trained ``minutes`` with the default config
+    and ``backbone``. Reused when WORK already holds it."""
     from evdnerf_ros.session.convert import run_convert
     from evdnerf_ros.sim.simulate import SimulationOptions, simulate_session
     from evdnerf_ros.train.trainer import run_train
 
     work.mkdir(parents=True, exist_ok=True)
-    h5, run = work / "fork64.h5", work / "fork64_run"
+    h5, run = work / "fork64.h5", work / ("fork64_run" if backbone == "planes" else f"fork64_{backbone}_run")
     if not h5.exists():
         simulate_session("fork", work / "session", SimulationOptions(
             views=8, val_views=2, resolution=(64, 64), frame_rate_hz=20, blur_samples=2, gt_times=0,
             supersample=2, jobs=1, min_step_ns=2_000_000), log=lambda *_: None)
         run_convert(work / "session", h5, offsets="ground-truth", log=lambda *_: None)
     if not (run / "checkpoint.pt").exists():
-        run_train(h5, run, minutes=minutes, overwrite=True, log=lambda *_: None)
+        run_train(h5, run, config={"backbone": backbone}, minutes=minutes, overwrite=True, log=lambda *_: None)
     return h5, run
 
 
@@ -198,7 +199,8 @@ SKIP = {"static": ("static world field", "whole images", "motion guard"), "orbit
 RESOLUTION_LEVERS = ("static reuse (default)", "baked 64")
 
 
-def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: float = 0.0) -> dict:
+def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: float = 0.0,
+                    backbone: str = "planes") -> dict:
     """Published events against the simulator's along the same path (eval.published), for each
     publisher lever (error against run time; ``levers``: names to run, default all) and against
     resolution (RTF); ``span_s``: seconds of events per publish (0: 0.1 quick, else 0.3)."""
@@ -207,13 +209,13 @@ def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: 
     from evdnerf_ros.eval.published import published_vs_true
 
     torch.set_num_threads(threads)
-    h5, run = trained_fork_run(work, minutes=1.0 if quick else 2.0)
+    h5, run = trained_fork_run(work, minutes=1.0 if quick else 2.0, backbone=backbone)
     span = int(round(span_s * 1e9)) or (100_000_000 if quick else 300_000_000)
     windows = 16
     # a moving camera re-plans at every pose (seconds per render on a CPU): at most 0.1 s of it
     spans = {"static": span, "orbit": min(span, 100_000_000)}
     out = {"threads": threads, "span_s": span / 1e9, "orbit_span_s": spans["orbit"] / 1e9, "windows": windows,
-           "run": f"fork 64x64, 8 + 2 views, {'1' if quick else '2'} min of training", "levers": {},
+           "run": f"fork 64x64, 8 + 2 views, {'1' if quick else '2'} min of training, {backbone} field", "levers": {},
            "resolution": []}
 
     def one(path, params, ref, **kw):
@@ -383,6 +385,8 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the published-vs-true part (1: shared "
                     "machine)")
     ap.add_argument("--levers", default="", help="published part: comma-separated lever names (default: all)")
+    ap.add_argument("--backbone", default="planes", choices=["planes", "hinge"],
+                    help="published part: the trained run's field (hinge: stored as published_vs_true_hinge)")
     ap.add_argument("--span", type=float, default=0.0, help="published part: seconds of events per publish "
                     "(0: 0.1 with --quick, else 0.3)")
     args = ap.parse_args(argv)
@@ -403,9 +407,10 @@ def main(argv=None):
         result["dds_throughput"] = bench_dds(args.quick, cpus)
     if "published" in parts:
         with tempfile.TemporaryDirectory() as tmp:
-            result["published_vs_true"] = bench_published(Path(args.work or tmp), args.quick, args.threads,
-                                                          [n for n in args.levers.split(",") if n] or None,
-                                                          args.span)
+            key = "published_vs_true" + ("" if args.backbone == "planes" else f"_{args.backbone}")
+            result[key] = bench_published(Path(args.work or tmp), args.quick, args.threads,
+                                          [n for n in args.levers.split(",") if n] or None, args.span,
+                                          args.backbone)
     write_results(args.out, name, result, plot)
 
 
@@ -413,10 +418,14 @@ def plot(result, path):
     pv = result.get("published_vs_true")
     fig, ax = pyplot().subplots(1, 6 if pv else 4, figsize=(31 if pv else 21, 4.6))
     if pv:
-        for path_name, mk in (("static", "o"), ("orbit", "s")):
-            rows = pv["levers"].get(path_name, [])
+        hinge = result.get("published_vs_true_hinge", {"levers": {}})
+        for path_name, mk, field_name, levers in (("static", "o", "planes", pv), ("orbit", "s", "planes", pv),
+                                                  ("static", "P", "hinge", hinge), ("orbit", "X", "hinge", hinge)):
+            rows = levers["levers"].get(path_name, [])
+            if not rows:
+                continue
             ax[4].plot([r["publisher"]["wall_s"] for r in rows], [r["published"]["psnr"] for r in rows], mk,
-                       label=f"{path_name} camera")
+                       label=f"{path_name} camera, {field_name} field")
             for r in rows:
                 ax[4].annotate(r["lever"], (r["publisher"]["wall_s"], r["published"]["psnr"]), fontsize=6)
             if rows:

@@ -20,7 +20,9 @@ normalised units) and ``angles_rad`` (K >= 2 samples of the angle over normalise
 linear between them). ``train.joint`` derives it from a training set's true scene.
 
 ``decode_static`` is the static triplane alone: outside the dynamic region (where the trainer
-and the renderers call it) the moving part never is.
+and the renderers call it) the moving part never is. ``static_time_resolution`` > 0 makes the
+world a ``planes`` field with that many time rows (static until the data says otherwise), for
+what the part does to it: the shadow it casts.
 """
 
 from __future__ import annotations
@@ -79,7 +81,7 @@ class HingeField(DynamicField):
     def __init__(self, joint: dict, resolutions: Sequence[int] = (16, 32, 64), features: int = 16,
                  hidden: int = 64, hidden_layers: int = 1, density_activation: str = "softplus",
                  density_bias: float = -1.0, init_range: tuple = (0.1, 0.5), seed: int | None = None,
-                 shading: bool = True):
+                 shading: bool = True, static_time_resolution: int = 0):
         super().__init__()
         if density_activation not in ("softplus", "trunc_exp"):
             raise ValueError(f"density_activation must be softplus or trunc_exp, got {density_activation!r}")
@@ -95,8 +97,6 @@ class HingeField(DynamicField):
         half = torch.as_tensor(joint["half"], dtype=torch.float32).reshape(3)
         if not bool((half > 0).all()):
             raise ValueError("hinge field: joint.half must be > 0 on every axis")
-        self.joint = {k: [float(v) for v in torch.as_tensor(joint[k]).reshape(-1)] for k in
-                      ("pivot", "axis", "half", "angles_rad")}
         self.density_activation = density_activation
         self.density_bias = float(density_bias)
         self.register_buffer("pivot", torch.as_tensor(joint["pivot"], dtype=torch.float32).reshape(3))
@@ -104,7 +104,14 @@ class HingeField(DynamicField):
         self.register_buffer("half_extent", half)
         self.register_buffer("angles", angles)
         gen = torch.Generator().manual_seed(seed) if seed is not None else None
-        self.static = Triplane(resolutions, features, hidden, hidden_layers, init_range, gen)
+        self.static_time_resolution = int(static_time_resolution)
+        if self.static_time_resolution > 0:
+            # the world may change too (the shadow the part casts): a planes field, static until
+            # the data says otherwise
+            self.static = PlanesField(resolutions, self.static_time_resolution, features, hidden, hidden_layers,
+                                      density_activation, density_bias, init_range, seed)
+        else:
+            self.static = Triplane(resolutions, features, hidden, hidden_layers, init_range, gen)
         self.shading = bool(shading)
         self.moving = Triplane(resolutions, features, hidden, hidden_layers, init_range, gen,
                                extra_inputs=2 if self.shading else 0)
@@ -134,13 +141,16 @@ class HingeField(DynamicField):
     # ----- the reuse pair: the static triplane once per point, the moving one per time
     def space_features(self, x: torch.Tensor):
         x = x.to(torch.float32)
+        if self.static_time_resolution:
+            return x, self.static.space_features(x)
         return x, self._activate(self.static(x))
 
     def decode(self, features, t: torch.Tensor):
-        x, (ds, gs) = features
+        x, static = features
         t = t.to(torch.float32).reshape(-1)
         if t.numel() == 1:
             t = t.expand(x.shape[0])
+        ds, gs = self.static.decode(static, t) if self.static_time_resolution else static
         theta = self.angle(t)
         extra = torch.stack([torch.cos(theta), torch.sin(theta)], dim=1) if self.shading else None
         dm, gm = self._activate(self.moving(self.part_frame(x, t).clamp(-1.0, 1.0), extra))
@@ -149,7 +159,7 @@ class HingeField(DynamicField):
         return density, grey
 
     def decode_static(self, features):
-        return features[1]
+        return self.static.decode_static(features[1]) if self.static_time_resolution else features[1]
 
     def forward(self, x: torch.Tensor, t: torch.Tensor):
         return self.decode(self.space_features(x), t)

@@ -96,7 +96,8 @@ FIELD_KEYS = {
     "hinge": {"resolutions": ("list", 1, 8192, 16), "features": (1, 4096, "int"), "hidden": (1, 65536, "int"),
               "hidden_layers": (0, 64, "int"), "density_activation": ("softplus", "trunc_exp"),
               "density_bias": (-1e3, 1e3, "float"), "init_range": ("pair", -1e3, 1e3),
-              "seed": (0, 2 ** 63 - 1, "int?"), "shading": ("bool",)},
+              "seed": (0, 2 ** 63 - 1, "int?"), "shading": ("bool",),
+              "static_time_resolution": (0, 8192, "int")},
 }
 
 def number(value, where: Where, low, high, kind: str, low_open: bool = False,
@@ -236,6 +237,7 @@ def field_parameters(cfg) -> int:
             # also reads cos and sin of the joint angle
             first = int(f["hidden"]) if int(f["hidden_layers"]) else 2
             n = 2 * n + (2 * first if f["shading"] else 0)
+            n += sum(3 * feat * int(f["static_time_resolution"]) * r for r in res)
         return n + background_parameters(cfg)
     depth, width = int(f["depth"]), int(f["width"])
     cd = depth if f["canonical_depth"] is None else int(f["canonical_depth"])
