@@ -145,6 +145,7 @@ def add_truth(out_dir, scene_ref: str, profile, trigger_log, virtual: dict, *, l
     returns the document written."""
     from evdnerf_ros.io.rosbag2 import read_events
     from evdnerf_ros.session.layout import load_session
+    from evdnerf_ros.sim.joint import joint_record
     from evdnerf_ros.sim.scene import load_scene
 
     from .camera.virtual.rig_source import servo_joint
@@ -189,7 +190,8 @@ def add_truth(out_dir, scene_ref: str, profile, trigger_log, virtual: dict, *, l
                   scene=scene.name, scene_ref=str(scene_ref), supersample=1)
     doc = session_document(
         source=source, rig=dict(data["rig"], virtual=virtual), camera=data["camera"],
-        servo=servo_record((data.get("servo") or {}).get("joint", JOINT), start_ns_scene=start_ns_scene),
+        servo=servo_record((data.get("servo") or {}).get("joint", JOINT), start_ns_scene=start_ns_scene,
+                           **(joint_record(scene) or {})),
         thresholds=data["thresholds"],
         time={"scene_start_ns": int(scene.start_ns), "scene_end_ns": int(scene.end_ns),
               "motion_start_ns": int(span[0]), "motion_end_ns": int(span[1])},

@@ -64,6 +64,25 @@ def test_the_static_world_never_changes_and_the_part_moves_with_the_joint():
     torch.testing.assert_close(still.decode(f, torch.tensor([0.0]))[0], still.decode(f, torch.tensor([0.9]))[0])
 
 
+def test_a_changing_world_starts_static_and_keeps_the_reuse_pair_exact():
+    """``static_time_resolution``: the world is a planes field (for the part's shadow), static
+    at the start (time planes at 1) and decoded the same through the reuse pair as directly."""
+    field = make_field("hinge", joint=_joint([0.0, 1.0]), static_time_resolution=4, seed=5)
+    x = torch.rand(300, 3) * 2 - 1
+    feats = field.space_features(x)
+    world = field.static.space_features(x)
+    torch.testing.assert_close(field.static.decode(world, torch.tensor([0.1]))[0],
+                               field.static.decode(world, torch.tensor([0.8]))[0])
+    torch.testing.assert_close(field.decode_static(feats)[0], field.static.decode_static(world)[0])
+    with torch.no_grad():
+        for tp in field.static.time_planes:
+            tp.uniform_(0.5, 2.0)
+    feats = field.space_features(x)
+    for t in (0.0, 0.37, 1.0):
+        direct = field(x, torch.full((300, 1), t))
+        torch.testing.assert_close(field.decode(feats, torch.tensor([t])), direct)
+
+
 @pytest.mark.parametrize("bad, why", [({"angles_rad": [0.1]}, ">= 2 finite"), ({"axis": [0, 0, 0]}, "non-zero"),
                                       ({"half": [1, 0, 1]}, "> 0"), ({"angles_rad": [0.0, float("nan")]}, "finite")])
 def test_a_bad_joint_is_a_clear_error(bad, why):
@@ -71,7 +90,9 @@ def test_a_bad_joint_is_a_clear_error(bad, why):
         HingeField({**_joint([0.0, 1.0]), **bad})
 
 
-def test_the_joint_comes_from_the_training_sets_true_scene(tiny_train_h5):
+def test_the_joint_travels_from_the_scene_through_the_session_into_the_training_set(tiny_train_h5):
+    """The simulator writes the fork's servo joint into session.yaml, convert carries it onto the
+    common clock, and the field's angle table matches the scene's hinge over the span."""
     from evdnerf_ros.io.trainingset import TrainingSet
     from evdnerf_ros.train.joint import joint_from_training_set
 
@@ -83,15 +104,17 @@ def test_the_joint_comes_from_the_training_sets_true_scene(tiny_train_h5):
         t0, t1 = ts.time_range
     np.testing.assert_allclose(joint["pivot"], _normalise(fork.motion.pivot))
     np.testing.assert_allclose(joint["axis"], fork.motion.axis)
-    mid = t0 + (t1 - t0) // 2
-    assert joint["angles_rad"][32] == pytest.approx(fork.motion.angle_rad(mid + origin), abs=1e-9)
+    for k in (0, 13, 32, 50, 64):
+        t = t0 + round(k / 64 * (t1 - t0))
+        assert joint["angles_rad"][k] == pytest.approx(fork.motion.angle_rad(t + origin), abs=2e-4), k
     assert max(abs(a) for a in joint["angles_rad"]) > 0.5   # the swing is inside the span
 
 
-def test_a_set_without_a_scene_has_no_joint(tiny_train_h5, tmp_path):
-    import h5py
+def test_a_set_without_a_joint_says_to_train_planes(tiny_train_h5, tmp_path):
     import json
     import shutil
+
+    import h5py
 
     from evdnerf_ros.io.trainingset import TrainingSet
     from evdnerf_ros.train.joint import joint_from_training_set
@@ -100,10 +123,10 @@ def test_a_set_without_a_scene_has_no_joint(tiny_train_h5, tmp_path):
     shutil.copy(tiny_train_h5, copy)
     with h5py.File(copy, "r+") as f:
         prov = json.loads(f["provenance"][()])
-        prov.pop("truth")
+        prov.pop("joint")
         del f["provenance"]
         f.create_dataset("provenance", data=json.dumps(prov))
-    with TrainingSet(copy) as ts, pytest.raises(InputError, match="backbone planes"):
+    with TrainingSet(copy) as ts, pytest.raises(InputError, match="real.h5: backbone hinge .* train with backbone planes"):
         joint_from_training_set(ts, BOX)
 
 
@@ -126,3 +149,37 @@ def test_a_hinge_run_trains_saves_and_loads(tiny_train_h5, tmp_path):
     x = torch.rand(50, 3) * 2 - 1
     with torch.no_grad():
         torch.testing.assert_close(fresh(x, torch.full((50, 1), 0.4)), run.field(x, torch.full((50, 1), 0.4)))
+
+
+def test_only_a_scene_whose_one_motion_is_a_servo_hinge_has_a_joint_record():
+    from evdnerf_ros.sim.joint import ANGLE_STEP_NS, joint_record
+
+    fork = load_scene("fork", check_cameras=False)
+    record = joint_record(fork)
+    drive = fork.object("fork").servo
+    assert record["angle_rad"]["step_ns"] == ANGLE_STEP_NS
+    values = record["angle_rad"]["values"]
+    assert len(values) == drive.profile.duration_ns // ANGLE_STEP_NS + 1
+    assert values[137] == pytest.approx(drive.angle_rad(drive.start_ns + 137 * ANGLE_STEP_NS))
+    assert joint_record(load_scene("jet-down", check_cameras=False)) is None      # keyframed, no servo
+
+
+@pytest.mark.parametrize("change, why", [
+    ({"axis": [0, 0, 0]}, "non-zero"), ({"pivot": None}, "together"),
+    ({"angle_rad": {"step_ns": 0, "values": [0.0, 1.0]}}, "step_ns"),
+    ({"angle_rad": {"step_ns": 1000, "values": [0.0]}}, "at least 2")])
+def test_session_yaml_checks_the_joint(tiny_train_h5, tmp_path, change, why):
+    import shutil
+
+    import yaml
+
+    from evdnerf_ros.session.layout import load_session
+
+    session = tmp_path / "s"
+    shutil.copytree(tiny_train_h5.parent / "s", session)
+    doc = yaml.safe_load((session / "session.yaml").read_text())
+    assert doc["servo"]["angle_rad"]["values"]
+    doc["servo"].update(change)
+    (session / "session.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(InputError, match=f"servo.*{why}"):
+        load_session(session)

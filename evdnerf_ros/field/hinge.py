@@ -152,8 +152,8 @@ class HingeField(DynamicField):
             t = t.expand(x.shape[0])
         ds, gs = self.static.decode(static, t) if self.static_time_resolution else static
         theta = self.angle(t)
-        extra = torch.stack([torch.cos(theta), torch.sin(theta)], dim=1) if self.shading else None
-        dm, gm = self._activate(self.moving(self.part_frame(x, t).clamp(-1.0, 1.0), extra))
+        cs = torch.stack([torch.cos(theta), torch.sin(theta)], dim=1) if self.shading else None
+        dm, gm = self._activate(self.moving(self.part_frame(x, t).clamp(-1.0, 1.0), cs))
         density = ds + dm
         grey = (ds * gs + dm * gm) / density.clamp_min(1e-8)
         return density, grey

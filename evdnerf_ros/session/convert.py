@@ -610,6 +610,9 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
                                             frame_ns=frame_ns)
             if truth is not None:
                 provenance["truth"] = truth
+                joint = _joint_record(session.servo, truth)
+                if joint is not None:
+                    provenance["joint"] = joint
             elif no_truth:              # a session that knows its scene, but not every view's time in it
                 provenance["truth_note"] = no_truth
                 log(f"  {no_truth}")
@@ -828,6 +831,20 @@ def _truth_record(source: dict | None, views: dict, options: dict | None, *,
         record["render_grid"] = {"period_ns": int(frame_ns),
                                  "scene_ns": {name: int(z) for name, z in zeros.items()}}
     return record, ""
+
+
+def _joint_record(servo: dict | None, truth: dict) -> dict | None:
+    """The servo's joint on the common clock (the ``hinge`` field's, ``train.joint``): session.yaml's
+    axis, pivot and angle samples, and the servo's start = its scene time minus the scene time at
+    the common origin (the views' median: they agree up to the sync error). Only where the
+    session records the joint and the scene's clock (simulated and virtual-rig sessions): a real
+    capture would time the start by its trigger edges (not built)."""
+    if not servo or servo.get("angle_rad") is None or servo.get("start_ns_scene") is None:
+        return None
+    origin = int(np.median([int(v) for v in truth["scene_time_at_origin_ns"].values()]))
+    return {"axis": [float(v) for v in servo["axis"]], "pivot": [float(v) for v in servo["pivot"]],
+            "start_ns": int(servo["start_ns_scene"]) - origin, "step_ns": int(servo["angle_rad"]["step_ns"]),
+            "angles_rad": [float(v) for v in servo["angle_rad"]["values"]]}
 
 
 def run_convert(session_dir, out, options: ConvertOptions | None = None, *, overwrite: bool = False,

@@ -139,6 +139,24 @@ def _int_ns(sec: dict, key: str, where: Where, *, required: bool = False):
     return number_in(sec, key, where, required=required, integer=True, low=-T_LIMIT, high=T_LIMIT)
 
 
+def _check_joint(servo: dict, where: Where) -> None:
+    """The servo's joint, where the rig knows it (``sim.joint.joint_record``): axis and pivot
+    (world) and the angle every ``step_ns`` after the servo's start; all three or none."""
+    keys = [k for k in ("axis", "pivot", "angle_rad") if servo.get(k) is not None]
+    if not keys:
+        return
+    if len(keys) != 3:
+        (where / keys[0]).fail("comes with axis, pivot and angle_rad together (the joint the rig knows), or none")
+    axis = matrix([servo["axis"]], (1, 3), where / "axis")
+    if not np.linalg.norm(axis) > 0:
+        (where / "axis").fail("must be a non-zero direction")
+    matrix([servo["pivot"]], (1, 3), where / "pivot")
+    angle = mapping(servo["angle_rad"], where / "angle_rad")
+    number_in(angle, "step_ns", where / "angle_rad", required=True, integer=True, low=1, high=T_LIMIT)
+    values = sequence(angle.get("values"), where / "angle_rad" / "values", min_len=2)
+    matrix([values], (1, len(values)), where / "angle_rad" / "values", max_abs=1e3)
+
+
 def _check_session(root: Path, path: Path, data) -> Session:
     top = Where(path)
     if not isinstance(data, dict) or data.get("format") != SESSION_FORMAT:
@@ -179,6 +197,7 @@ def _check_session(root: Path, path: Path, data) -> Session:
         for k in ("trigger", "joint_states"):
             _topic(servo, k, top / "servo")
         _int_ns(servo, "start_ns_scene", top / "servo")
+        _check_joint(servo, top / "servo")
     if data.get("scene_bounds") is not None:
         b = matrix(data["scene_bounds"], (2, 3), top / "scene_bounds")
         if np.any(b[1] < b[0]):

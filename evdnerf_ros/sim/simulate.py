@@ -73,6 +73,7 @@ from ..session.recorder import (ViewRecorder, camera_record, servo_record, sessi
                                 view_record, write_session_yaml)
 from ..geometry.camera import PinholeCamera
 from .generator import EventGenerator
+from .joint import joint_record
 from ..events.logmap import LOG_EPS
 from .noise import DEFAULT_THRESHOLD, MIN_THRESHOLD
 from .motion import image_travel
@@ -616,7 +617,8 @@ def _session_yaml(scene, scene_ref, camera, options, tasks, results) -> dict:
              "elevation_deg": ring.elevation_deg, "look_at": list(map(float, ring.look_at)),
              "firmware_version": None, "device_serial": "virtual"},
         camera=camera_record(camera.width, camera.height, _K(camera)),
-        servo=servo_record(servos[0].name, start_ns_scene=servos[0].servo.start_ns) if servos else None,
+        servo=servo_record(servos[0].name, start_ns_scene=servos[0].servo.start_ns,
+                           **(joint_record(scene) or {})) if servos else None,
         thresholds={"c_pos": options.c_pos, "c_neg": options.c_neg, "eps": options.eps,
                     "threshold_sigma": options.threshold_sigma,
                     "refractory_ns": options.refractory_ns},

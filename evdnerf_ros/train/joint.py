@@ -1,10 +1,10 @@
 """The rig's joint for the ``hinge`` field: where the servo axis is and its angle over time.
 
-A training set converted from a simulated session or a virtual-rig capture records its true
-scene (``truth``: scene file and the scene time at the common clock's origin, per view). Its one
-hinged object gives the joint: pivot and axis in the world (through its parent's pose) and the
-angle at every moment of the training span. A real rig knows the same: the servo's mounting
-(rig geometry) and the firmware's motion profile.
+The rig knows both: the servo's mounting (axis and pivot in the world) and how it turns after
+its start (the firmware's profile). The simulator and the virtual rig write them into
+session.yaml's ``servo`` section (``sim.joint``); convert carries them into the training set as
+``joint``, with the servo's start on the common clock. Here they become ``HingeField``'s
+``joint``: the pivot in box-normalised coordinates and the angle sampled over the training span.
 """
 
 from __future__ import annotations
@@ -18,39 +18,27 @@ from ..errors import InputError
 ANGLE_SAMPLES = 257
 
 
-def hinged_part(train_set):
-    """(the true scene, its one hinged object, the truth record), or an InputError saying why
-    the set has no joint (the fix: backbone planes)."""
-    from ..geometry.trajectory import HingeMotion
-    from ..sim.scene import load_scene
-
-    where = f"{train_set.path}: backbone hinge"
-    record = train_set.provenance.get("truth")
-    if not record:
-        raise InputError(f"{where}: the training set records no scene, so its joint is unknown "
-                         "(simulated and virtual-rig sets only); train with backbone planes")
-    scene = load_scene(record["scene"], check_cameras=False)
-    hinged = [o for o in scene.all_objects() if isinstance(o.motion, HingeMotion)]
-    moving = [o for o in scene.all_objects() if o.motion is not None]
-    if len(hinged) != 1 or len(moving) != 1:
-        raise InputError(f"{where}: scene {scene.name!r} has {len(hinged)} hinged and {len(moving)} moving "
-                         "objects; the hinge field models exactly one joint and nothing else moving "
-                         "(train with backbone planes)")
-    return scene, hinged[0], record
+def recorded_joint(train_set) -> dict:
+    """The training set's ``joint`` record, or an InputError saying why there is none (the fix:
+    backbone planes)."""
+    joint = train_set.provenance.get("joint")
+    if not joint:
+        raise InputError(f"{train_set.path}: backbone hinge needs the rig's joint, and the training set records "
+                         "none (a session converted from a simulation or the virtual rig by this version "
+                         "records it when a servo hinge is the scene's only motion); train with backbone planes")
+    return joint
 
 
 def joint_from_training_set(train_set, box, samples: int = ANGLE_SAMPLES) -> dict:
-    """``HingeField``'s ``joint`` from the true scene of ``train_set`` (see the module notes)."""
-    scene, part, record = hinged_part(train_set)
-    parent = np.eye(4) if part.parent is None else scene.transforms(scene.start_ns)[part.parent]
-    pivot = parent[:3, :3] @ part.motion.pivot + parent[:3, 3]
-    axis = parent[:3, :3] @ part.motion.axis
+    """``HingeField``'s ``joint`` from the set's record (module notes), for the scene ``box``."""
+    joint = recorded_joint(train_set)
     lo, hi = (np.asarray(b, np.float64) for b in box)
-    origins = np.array([int(v) for v in record["scene_time_at_origin_ns"].values()], np.int64)
-    # views agree on the scene time at the origin up to the sync error; the median is the joint's
-    origin = int(np.median(origins))
+    pivot = np.asarray(joint["pivot"], np.float64)
     t0, t1 = (int(v) for v in train_set.time_range)
     t_ns = t0 + np.round(np.linspace(0.0, 1.0, int(samples)) * (t1 - t0)).astype(np.int64)
-    angles = [float(part.motion.angle_rad(int(t) + origin)) for t in t_ns]
-    return {"pivot": ((pivot - lo) / (hi - lo) * 2.0 - 1.0).tolist(), "axis": axis.tolist(),
-            "half": ((hi - lo) / 2.0).tolist(), "angles_rad": angles}
+    values = np.asarray(joint["angles_rad"], np.float64)
+    # the angle before the start is the first sample's, after the profile's end the last one's
+    elapsed = (t_ns - np.int64(joint["start_ns"])).astype(np.float64) / float(joint["step_ns"])
+    angles = np.interp(elapsed, np.arange(values.size, dtype=np.float64), values)
+    return {"pivot": ((pivot - lo) / (hi - lo) * 2.0 - 1.0).tolist(), "axis": list(joint["axis"]),
+            "half": ((hi - lo) / 2.0).tolist(), "angles_rad": angles.tolist()}
