@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .base import DynamicField
-from .planes import _SPACE_PAIRS, PlanesField, trunc_exp
+from .planes import _SPACE_PAIRS, PlanesField, decoder_mlp, trunc_exp
 
 
 class Triplane(nn.Module):
@@ -47,20 +47,7 @@ class Triplane(nn.Module):
         self.planes = nn.ParameterList(
             nn.Parameter(torch.rand(3, features, int(r), int(r), generator=gen) * (b - a) + a)
             for r in resolutions)
-        layers: list[nn.Module] = []
-        d = features * len(self.planes) + int(extra_inputs)
-        for _ in range(int(hidden_layers)):
-            layers += [nn.Linear(d, hidden), nn.ReLU()]
-            d = hidden
-        layers.append(nn.Linear(d, 2))
-        self.decoder = nn.Sequential(*layers)
-        if gen is not None:
-            with torch.no_grad():
-                for m in self.decoder:
-                    if isinstance(m, nn.Linear):
-                        bound = 1.0 / m.in_features ** 0.5
-                        m.weight.uniform_(-bound, bound, generator=gen)
-                        m.bias.uniform_(-bound, bound, generator=gen)
+        self.decoder = decoder_mlp(features * len(self.planes) + int(extra_inputs), hidden, hidden_layers, gen)
 
     def forward(self, x: torch.Tensor, extra: torch.Tensor | None = None) -> torch.Tensor:
         """(N, 3) in [-1, 1] (and (N, extra_inputs) more decoder inputs) -> raw (N, 2): density

@@ -48,6 +48,26 @@ def trunc_exp(x: torch.Tensor) -> torch.Tensor:
     return _TruncExp.apply(x.clamp(max=15.0))
 
 
+def decoder_mlp(inputs: int, hidden: int, hidden_layers: int, gen: torch.Generator | None) -> nn.Sequential:
+    """The tiny decoder: ``hidden_layers`` x (Linear, ReLU), then Linear to (density, grey) logits;
+    with ``gen``, initialised from it (PyTorch's default uniform bounds) for a seeded field."""
+    layers: list[nn.Module] = []
+    d = int(inputs)
+    for _ in range(int(hidden_layers)):
+        layers += [nn.Linear(d, hidden), nn.ReLU()]
+        d = hidden
+    layers.append(nn.Linear(d, 2))
+    decoder = nn.Sequential(*layers)
+    if gen is not None:
+        with torch.no_grad():
+            for m in decoder:
+                if isinstance(m, nn.Linear):
+                    bound = 1.0 / m.in_features ** 0.5
+                    m.weight.uniform_(-bound, bound, generator=gen)
+                    m.bias.uniform_(-bound, bound, generator=gen)
+    return decoder
+
+
 class PlanesField(DynamicField):
     reuses_space_features = True
 
@@ -74,20 +94,7 @@ class PlanesField(DynamicField):
             # rows = time, columns = the space axis
             self.time_planes.append(nn.Parameter(
                 torch.ones(3, self.features, self.time_resolution, r)))
-        layers: list[nn.Module] = []
-        d = self.features * len(self.resolutions)
-        for _ in range(int(hidden_layers)):
-            layers += [nn.Linear(d, hidden), nn.ReLU()]
-            d = hidden
-        layers.append(nn.Linear(d, 2))
-        self.decoder = nn.Sequential(*layers)
-        if gen is not None:
-            with torch.no_grad():
-                for m in self.decoder:
-                    if isinstance(m, nn.Linear):
-                        bound = 1.0 / m.in_features ** 0.5
-                        m.weight.uniform_(-bound, bound, generator=gen)
-                        m.bias.uniform_(-bound, bound, generator=gen)
+        self.decoder = decoder_mlp(self.features * len(self.resolutions), hidden, hidden_layers, gen)
 
     @staticmethod
     def _lookup(planes: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
