@@ -140,6 +140,15 @@ def test_a_hinge_run_trains_saves_and_loads(tiny_train_h5, tmp_path):
         "field": {"resolutions": [8, 16], "features": 4}}, iters=3, log=lambda *_: None, device="cpu")
     run = TrainedRun.load(tmp_path / "run")
     assert isinstance(run.field, HingeField)
+    # a config object given to the trainer is not changed (the joint belongs to this set)
+    from evdnerf_ros.io.trainingset import TrainingSet
+    from evdnerf_ros.train.config import TrainConfig
+    from evdnerf_ros.train.trainer import Trainer
+
+    given = TrainConfig.from_dict({"backbone": "hinge", "field": {"resolutions": [8], "features": 2}})
+    with TrainingSet(tiny_train_h5) as ts:
+        tr = Trainer(ts, given, iters=1, log=lambda *_: None)
+    assert "joint" in tr.cfg.field and "joint" not in given.field
     assert run.field.angles.numel() == 257 and "joint" in (tmp_path / "run" / "config.yaml").read_text()
     # the joint is part of the config: a fresh field from it takes the trained weights
     from evdnerf_ros.train.config import field_from_config

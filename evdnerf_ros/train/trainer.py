@@ -31,6 +31,7 @@ once and keeps the previous checkpoint.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -116,7 +117,9 @@ class Trainer:
         self.box = np.asarray(cfg.box, np.float64) if cfg.box is not None else \
             default_box(train_set, cfg.box_fraction)
         if cfg.backbone == "hinge" and "joint" not in cfg.field:
-            cfg.field = {**cfg.field, "joint": joint_from_training_set(train_set, self.box)}
+            # a copy: a caller's config object stays free of this set's joint
+            cfg = self.cfg = dataclasses.replace(
+                cfg, field={**cfg.field, "joint": joint_from_training_set(train_set, self.box)})
         self.field = field_from_config(cfg).to(self.device)
         self.params = [p for p in self.field.parameters() if p.requires_grad]
         groups = [{"params": self.params, "lr_scale": 1.0}]
@@ -594,7 +597,7 @@ def _train_locked(train_h5, run_dir: Path, lock: RunLock, given, *, iters, minut
             for p in (ckpt, metrics):
                 if p.exists():
                     p.unlink()
-        write_text(config_path, cfg.dump())
+        write_text(config_path, tr.cfg.dump())      # as trained (a hinge run: with its joint)
         summary = tr.train()
     summary.update({"run_dir": str(run_dir), "resumed": resume, "metrics": str(metrics)})
     return summary
