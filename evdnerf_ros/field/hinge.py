@@ -30,11 +30,10 @@ from __future__ import annotations
 from typing import Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from .base import DynamicField
-from .planes import _SPACE_PAIRS, PlanesField, decoder_mlp, trunc_exp
+from .planes import _SPACE_PAIRS, PlanesField, activate, decoder_mlp
 
 
 class Triplane(nn.Module):
@@ -121,9 +120,7 @@ class HingeField(DynamicField):
         return rotated / self.half_extent + self.pivot
 
     def _activate(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        logit = raw[:, 0] + self.density_bias
-        density = F.softplus(logit) if self.density_activation == "softplus" else trunc_exp(logit)
-        return density, torch.sigmoid(raw[:, 1])
+        return activate(raw, self.density_activation, self.density_bias)
 
     # ----- the reuse pair: the static triplane once per point, the moving one per time
     def space_features(self, x: torch.Tensor):

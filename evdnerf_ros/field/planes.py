@@ -68,6 +68,13 @@ def decoder_mlp(inputs: int, hidden: int, hidden_layers: int, gen: torch.Generat
     return decoder
 
 
+def activate(raw: torch.Tensor, density_activation: str, density_bias: float):
+    """Decoder logits (N, 2) -> (density (N,) >= 0, grey (N,) in (0, 1))."""
+    logit = raw[:, 0] + density_bias
+    density = F.softplus(logit) if density_activation == "softplus" else trunc_exp(logit)
+    return density, torch.sigmoid(raw[:, 1])
+
+
 class PlanesField(DynamicField):
     reuses_space_features = True
 
@@ -174,13 +181,7 @@ class PlanesField(DynamicField):
         return self._head(torch.cat(features[1], dim=1))
 
     def _head(self, feat: torch.Tensor):
-        raw = self.decoder(feat)
-        if self.density_activation == "softplus":
-            density = F.softplus(raw[:, 0] + self.density_bias)
-        else:
-            density = trunc_exp(raw[:, 0] + self.density_bias)
-        grey = torch.sigmoid(raw[:, 1])
-        return density, grey
+        return activate(self.decoder(feat), self.density_activation, self.density_bias)
 
     def forward(self, x: torch.Tensor, t: torch.Tensor):
         return self.decode(self.space_features(x), t)
