@@ -71,6 +71,12 @@ LEVERS = {
     "event-rays-0.8": {"event_ray_fraction": 0.8},
     "lr-0.005": {"lr": 0.005},
     "hinge": {"backbone": "hinge"},
+    "rigid": {"backbone": "rigid"},
+    "rigid-pose-lr-0.03": {"backbone": "rigid", "field": {"pose_lr_scale": 0.03}},
+    "rigid-pose-lr-0.3": {"backbone": "rigid", "field": {"pose_lr_scale": 0.3}},
+    "rigid-fixed-track": {"backbone": "rigid", "field": {"pose_lr_scale": 0.0}},
+    "rigid-no-shading": {"backbone": "rigid", "field": {"shading": False}},
+    "rigid-space-res-128": {"backbone": "rigid", "field": {"resolutions": [16, 32, 64, 128]}},
 }
 #: --demo's levers by default (the demo's config already sets windows and 32 samples).
 DEMO_LEVERS = ["baseline", "lr-0.01", "lr-0.005", "spans-0.8", "samples-48", "time-res-32", "event-rays-0.8"]

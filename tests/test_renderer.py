@@ -169,6 +169,21 @@ def _dense_hinge_field(seed):
     return field
 
 
+def _dense_rigid_field(seed):
+    """A small rigid field dense enough to show, its part falling and turning over the span."""
+    from evdnerf_ros.field import make_field
+
+    torch.manual_seed(seed)
+    track = {"centre": [[0.0, 0.1, 0.6], [0.1, 0.0, -0.5]], "half": [0.55, 0.55, 0.55], "radius": 0.4}
+    field = make_field("rigid", track=track, resolutions=[8], features=4, hidden=8).eval()
+    with torch.no_grad():
+        field.rotation.copy_(torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.2, 1.0]]))
+        for part in (field.static, field.moving):
+            for sp in part.planes:
+                sp.uniform_(1.0, 3.0)
+    return field
+
+
 @pytest.mark.parametrize("world", ["field", "flat"])
 def test_field_renderer_places_only_samples_near_the_cells_and_draws_the_same(world):
     """With an occupancy grid (and, flat, a dynamic region) smaller than the box, only the samples
@@ -206,7 +221,7 @@ def test_field_renderer_places_only_samples_near_the_cells_and_draws_the_same(wo
         assert np.ptp(want) > 0.01
 
 
-@pytest.mark.parametrize("backbone", ["planes", "hinge"])
+@pytest.mark.parametrize("backbone", ["planes", "hinge", "rigid"])
 @pytest.mark.parametrize("world", ["field", "flat"])
 def test_render_pixels_draws_pixels_of_many_poses_and_times_as_render(world, backbone):
     """``render_pixels`` (the per-pixel sampler's batch): pixels of several poses and times in one
@@ -215,7 +230,7 @@ def test_render_pixels_draws_pixels_of_many_poses_and_times_as_render(world, bac
     from evdnerf_ros.field.occupancy import OccupancyGrid
     from evdnerf_ros.field.renderer import FieldRenderer
 
-    field = _dense_planes_field(6) if backbone == "planes" else _dense_hinge_field(6)
+    field = {"planes": _dense_planes_field, "hinge": _dense_hinge_field, "rigid": _dense_rigid_field}[backbone](6)
     box = [[-0.6, -0.5, -0.4], [0.5, 0.6, 0.7]]
     cells = torch.zeros(10, 10, 10, dtype=torch.bool)
     cells[2:8, 2:6, 2:8] = True

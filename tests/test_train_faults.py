@@ -345,7 +345,7 @@ BAD_CONFIGS = [
     ("box: [[0, 0, 0], [1, 1, .nan]]\n", r"box\[1\]\[2\]: must be a finite number"),
     ("far: 0.5\nnear: 1\n", "far: must be greater than near"),
     ("perturb: maybe\n", "perturb: expected true or false, got 'maybe'"),
-    ("backbone: [planes]\n", "backbone: expected one of dnerf, hinge, planes"),
+    ("backbone: [planes]\n", "backbone: expected one of dnerf, hinge, planes, rigid"),
     ("loss: 3\n", "loss: expected one of"),
     ("field: 16\n", "field: expected a mapping"),
     ("field: {features: -1}\n", "field.features: must be >= 1"),

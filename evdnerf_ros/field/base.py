@@ -54,6 +54,11 @@ class DynamicField(nn.Module, abc.ABC):
     def forward(self, x: torch.Tensor, t: torch.Tensor):
         """(N, 3) normalised x, (N, 1) t -> (density (N,), grey (N,))."""
 
+    def param_groups(self) -> list[tuple[list, float]]:
+        """[(parameters, learning-rate scale)]: every parameter at the trainer's rate (a field
+        with parameters of another scale, ``rigid``'s poses, splits them)."""
+        return [(list(self.parameters()), 1.0)]
+
     def space_features(self, x: torch.Tensor) -> Any:
         """Time-independent features of ``x`` (generic fallback: ``x`` itself)."""
         return x

@@ -32,16 +32,64 @@ from .occupancy import cells_box, grid_lookup
 
 def event_footprint(train_set, view, *, min_events: int = 1, dilate_px: int = 1) -> np.ndarray:
     """(H, W) bool: pixels with >= ``min_events`` events in the view, dilated by ``dilate_px``."""
+    return event_footprints(train_set, view, min_events=min_events, dilate_px=dilate_px)[0]
+
+
+def event_footprints(train_set, view, edges_ns=None, *, min_events: int = 1,
+                     dilate_px: int = 1) -> np.ndarray:
+    """(B, H, W) bool: the view's footprint (as ``event_footprint``) in each of the B time bins
+    between int64 ``edges_ns`` (B + 1, increasing; events outside are left out), or (1, H, W)
+    over all its events when ``edges_ns`` is None."""
     W, H = train_set.width, train_set.height
-    counts = np.zeros(W * H, np.int64)
+    edges = None if edges_ns is None else np.asarray(edges_ns, np.int64)
+    bins = 1 if edges is None else edges.size - 1
+    counts = np.zeros(bins * W * H, np.int64)
     for block in train_set.iter_events(view):
-        counts += np.bincount(block["y"].astype(np.int64) * W + block["x"], minlength=W * H)
-    fp = counts.reshape(H, W) >= int(min_events)
+        pixel = block["y"].astype(np.int64) * W + block["x"]
+        if edges is not None:
+            b = np.searchsorted(edges, block["t"], side="right") - 1
+            keep = (b >= 0) & (b < bins)
+            pixel = b[keep] * (W * H) + pixel[keep]
+        counts += np.bincount(pixel, minlength=bins * W * H)
+    fp = counts.reshape(bins, H, W) >= int(min_events)
     if dilate_px > 0:
         k = 2 * int(dilate_px) + 1
-        fp = F.max_pool2d(torch.from_numpy(fp)[None, None].float(), k, stride=1,
-                          padding=int(dilate_px))[0, 0].numpy() > 0.5
+        fp = F.max_pool2d(torch.from_numpy(fp)[:, None].float(), k, stride=1,
+                          padding=int(dilate_px))[:, 0].numpy() > 0.5
     return fp
+
+
+def carve(train_set, box, footprints: dict, *, resolution: int, misses: int = 0,
+          min_seen: int = 1) -> np.ndarray:
+    """(B, r, r, r) bool over the box's voxels (axis order x, y, z): per time bin, the voxels
+    whose centre projects onto the footprint in every view that sees it but ``misses``, and in one
+    at least, seen by ``min_seen`` views at least (``footprints``: static view -> (B, H, W) bool;
+    a view with no footprint at all carves nothing)."""
+    box = np.asarray(box, np.float64).reshape(2, 3)
+    r = int(resolution)
+    axes = [box[0, i] + (np.arange(r) + 0.5) / r * (box[1, i] - box[0, i]) for i in range(3)]
+    centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    bins = next(iter(footprints.values())).shape[0] if footprints else 1
+    seen = np.zeros(len(centres), np.int32)
+    hit = np.zeros((bins, len(centres)), np.int32)
+    W, H = train_set.width, train_set.height
+    for v, fp in footprints.items():
+        if not fp.any():
+            continue        # a view with no events (a failed recording?) carves nothing
+        T = train_set.pose(v)
+        K = train_set.K(v)
+        pc = (centres - T[:3, 3]) @ T[:3, :3]                  # world -> camera (R^T (X - c))
+        z = pc[:, 2]
+        front = z > 1e-9
+        zs = np.where(front, z, 1.0)
+        u = np.rint(K[0, 0] * pc[:, 0] / zs + K[0, 2])
+        w = np.rint(K[1, 1] * pc[:, 1] / zs + K[1, 2])
+        inside = front & (u >= 0) & (u < W) & (w >= 0) & (w < H)
+        ui, wi = u[inside].astype(np.int64), w[inside].astype(np.int64)
+        seen[inside] += 1
+        hit[:, inside] += fp[:, wi, ui]
+    mask = (hit >= 1) & (hit >= seen - int(misses)) & (seen >= int(min_seen))
+    return mask.reshape(bins, r, r, r)
 
 
 class DynamicRegion:
@@ -63,31 +111,10 @@ class DynamicRegion:
         if not static:
             raise InputError(f"{getattr(train_set, 'path', 'training set')}: no static training "
                              "view to carve a dynamic region from; set dynamic_region: false")
-        box = np.asarray(box, np.float64).reshape(2, 3)
-        r = int(resolution)
-        axes = [box[0, i] + (np.arange(r) + 0.5) / r * (box[1, i] - box[0, i]) for i in range(3)]
-        centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-        seen = np.zeros(len(centres), np.int32)
-        hit = np.zeros(len(centres), np.int32)
-        W, H = train_set.width, train_set.height
-        for v in static:
-            fp = event_footprint(train_set, v, min_events=min_events, dilate_px=dilate_px)
-            if not fp.any():
-                continue        # a view with no events (a failed recording?) carves nothing
-            T = train_set.pose(v)
-            K = train_set.K(v)
-            pc = (centres - T[:3, 3]) @ T[:3, :3]                  # world -> camera (R^T (X - c))
-            z = pc[:, 2]
-            front = z > 1e-9
-            zs = np.where(front, z, 1.0)
-            u = np.rint(K[0, 0] * pc[:, 0] / zs + K[0, 2])
-            w = np.rint(K[1, 1] * pc[:, 1] / zs + K[1, 2])
-            inside = front & (u >= 0) & (u < W) & (w >= 0) & (w < H)
-            ui, wi = u[inside].astype(np.int64), w[inside].astype(np.int64)
-            seen[inside] += 1
-            hit[np.flatnonzero(inside)[fp[wi, ui]]] += 1
-        mask = (hit >= 1) & (hit >= seen - int(misses))
-        return cls(torch.from_numpy(mask.reshape(r, r, r)))
+        footprints = {v: event_footprints(train_set, v, min_events=min_events, dilate_px=dilate_px)
+                      for v in static}
+        return cls(torch.from_numpy(carve(train_set, box, footprints, resolution=resolution,
+                                          misses=misses)[0]))
 
     def to(self, device) -> "DynamicRegion":
         """The mask moved to ``device`` (where the points it is queried with live)."""

@@ -38,9 +38,10 @@ MAX_CONFIG_BYTES = 1 << 20
 class TrainConfig:
     # ---- model
     backbone: str = "planes"
-    """Field backbone: ``planes`` (K-Planes style, default), ``dnerf`` (the paper's MLPs) or
-    ``hinge`` (a static world and one rigid part on the rig's joint, taken from the training
-    set's true scene: ``field.joint``)."""
+    """Field backbone: ``planes`` (K-Planes style, default), ``dnerf`` (the paper's MLPs),
+    ``hinge`` (a static world and one rigid part on the rig's joint, recorded in the training
+    set: ``field.joint``) or ``rigid`` (a static world and one rigid part whose pose is learned,
+    starting from the events' per-time visual hulls: ``field.track``)."""
     field: dict = dc_field(default_factory=dict)
     """Keyword sizes for the backbone (e.g. ``{resolutions: [16, 32], features: 8}``)."""
 

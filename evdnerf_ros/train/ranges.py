@@ -98,6 +98,12 @@ FIELD_KEYS = {
               "density_bias": (-1e3, 1e3, "float"), "init_range": ("pair", -1e3, 1e3),
               "seed": (0, 2 ** 63 - 1, "int?"), "shading": ("bool",),
               "static_time_resolution": (0, 8192, "int")},
+    # track: the moving part's first track (train.track fills it from the events; the field checks it)
+    "rigid": {"resolutions": ("list", 1, 8192, 16), "features": (1, 4096, "int"), "hidden": (1, 65536, "int"),
+              "hidden_layers": (0, 64, "int"), "density_activation": ("softplus", "trunc_exp"),
+              "density_bias": (-1e3, 1e3, "float"), "init_range": ("pair", -1e3, 1e3),
+              "seed": (0, 2 ** 63 - 1, "int?"), "shading": ("bool",),
+              "static_time_resolution": (0, 8192, "int"), "pose_lr_scale": (0.0, 1e3, "float")},
 }
 
 def number(value, where: Where, low, high, kind: str, low_open: bool = False,
@@ -223,7 +229,7 @@ def _field_sizes(cfg) -> dict:
 def field_parameters(cfg) -> int:
     """Number of trainable parameters of the configured field (closed form)."""
     f = _field_sizes(cfg)
-    if cfg.backbone in ("planes", "hinge"):
+    if cfg.backbone in ("planes", "hinge", "rigid"):
         res, feat = [int(r) for r in f["resolutions"]], int(f["features"])
         t = int(f["time_resolution"]) if cfg.backbone == "planes" else 0
         n = sum(3 * feat * (r * r + t * r) for r in res)
@@ -232,12 +238,18 @@ def field_parameters(cfg) -> int:
             n += d * hidden + hidden
             d = hidden
         n += d * 2 + 2
-        if cfg.backbone == "hinge":
+        if cfg.backbone in ("hinge", "rigid"):
             # a static and a moving triplane, each with its head; the moving head's first layer
-            # also reads cos and sin of the joint angle
+            # also reads the pose (hinge: cos and sin of the joint angle; rigid: the rotation)
             first = int(f["hidden"]) if int(f["hidden_layers"]) else 2
-            n = 2 * n + (2 * first if f["shading"] else 0)
+            n = 2 * n + ((2 if cfg.backbone == "hinge" else 3) * first if f["shading"] else 0)
             n += sum(3 * feat * int(f["static_time_resolution"]) * r for r in res)
+        if cfg.backbone == "rigid":
+            # centre and rotation at each knot of the track
+            from .track import TRACK_KNOTS
+
+            track = f["track"] if isinstance(f["track"], dict) else {}     # not known yet: the default
+            n += 6 * len(track.get("centre", range(TRACK_KNOTS)))
         return n + background_parameters(cfg)
     depth, width = int(f["depth"]), int(f["width"])
     cd = depth if f["canonical_depth"] is None else int(f["canonical_depth"])
@@ -263,7 +275,7 @@ def bytes_per_sample(cfg) -> int:
     Calibrated on CPU: planes (default sizes) ~5.0 KB measured, 5.6 KB estimated; dnerf
     8 x 256 ~43 KB measured, 49 KB estimated."""
     f = _field_sizes(cfg)
-    if cfg.backbone in ("planes", "hinge"):
+    if cfg.backbone in ("planes", "hinge", "rigid"):
         scales, feat = len(f["resolutions"]), int(f["features"])
         hidden = int(f["hidden"]) * max(1, int(f["hidden_layers"]))
         return 4 * (20 * scales * feat + 6 * hidden + 64)

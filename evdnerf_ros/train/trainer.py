@@ -58,6 +58,7 @@ from .rundir import (CHECKPOINT_NAME, CONFIG_NAME, LOCK_NAME, METRICS_NAME, RunL
                      truncate_metrics, write_text)
 from .rays import FrameSampler, RaySampler, default_box
 from .thresholds import LearnedThresholds
+from .track import track_from_events
 
 DEFAULT_ITERS = 2000
 
@@ -116,13 +117,19 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.box = np.asarray(cfg.box, np.float64) if cfg.box is not None else \
             default_box(train_set, cfg.box_fraction)
+        # the set's joint (hinge) or the moving part's track (rigid) into a copy: a caller's
+        # config object stays free of them
         if cfg.backbone == "hinge" and "joint" not in cfg.field:
-            # a copy: a caller's config object stays free of this set's joint
             cfg = self.cfg = dataclasses.replace(
                 cfg, field={**cfg.field, "joint": joint_from_training_set(train_set, self.box)})
+        if cfg.backbone == "rigid" and "track" not in cfg.field:
+            cfg = self.cfg = dataclasses.replace(cfg, field={**cfg.field, "track": track_from_events(
+                train_set, self.box, resolution=cfg.dynamic_resolution, min_events=cfg.dynamic_min_events,
+                dilate_px=cfg.dynamic_dilate_px, misses=cfg.dynamic_misses)})
         self.field = field_from_config(cfg).to(self.device)
-        self.params = [p for p in self.field.parameters() if p.requires_grad]
-        groups = [{"params": self.params, "lr_scale": 1.0}]
+        groups = [{"params": [p for p in params if p.requires_grad], "lr_scale": scale}
+                  for params, scale in self.field.param_groups()]
+        self.params = [p for g in groups for p in g["params"]]
         self.c_pos, self.c_neg = (float(c) for c in train_set.thresholds)
         self.thresholds = None
         if cfg.learn_thresholds:
