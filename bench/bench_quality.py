@@ -77,6 +77,9 @@ LEVERS = {
     "rigid-fixed-track": {"backbone": "rigid", "field": {"pose_lr_scale": 0.0}},
     "rigid-no-shading": {"backbone": "rigid", "field": {"shading": False}},
     "rigid-space-res-128": {"backbone": "rigid", "field": {"resolutions": [16, 32, 64, 128]}},
+    "rigid-samples-96": {"backbone": "rigid", "n_samples": 96},
+    "rigid-lr-decay-0.1": {"backbone": "rigid", "lr_final": 0.1},
+    "rigid-windows-32": {"backbone": "rigid", "windows": [32], "window_switch": []},
 }
 #: --demo's levers by default (the demo's config already sets windows and 32 samples).
 DEMO_LEVERS = ["baseline", "lr-0.01", "lr-0.005", "spans-0.8", "samples-48", "time-res-32", "event-rays-0.8"]

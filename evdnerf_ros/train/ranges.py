@@ -70,7 +70,7 @@ NUMBERS = {
     "checkpoint_every": (0, BIG, "int", False),
     "log_every": (0, BIG, "int", False),
 }
-NULLABLE = ("iters", "minutes")
+NULLABLE = ("iters", "minutes", "n_samples", "lr_final")   # the last two: the backbone's default
 BOOLS = ("perturb", "dynamic_region", "learn_thresholds", "sample_reuse")
 #: windows: 1 to MAX_PHASES counts in [1, MAX_WINDOWS]; window_switch: fractions in (0, 1).
 MAX_WINDOWS = 1 << 20
