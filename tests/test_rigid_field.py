@@ -186,6 +186,7 @@ def test_rigid_takes_its_own_defaults_for_samples_and_decay_unless_given():
     assert (TrainConfig().n_samples, TrainConfig().lr_final) == (48, 1.0)
     assert (TrainConfig(backbone="rigid").n_samples, TrainConfig(backbone="rigid").lr_final) == (64, 0.1)
     assert TrainConfig(backbone="rigid", n_samples=32).n_samples == 32
+    assert (TrainConfig(backbone="hinge").n_samples, TrainConfig(backbone="hinge").lr_final) == (48, 0.1)
     cfg = TrainConfig.from_dict({"backbone": "rigid", "lr_final": 0.5, "n_samples": None})
     assert (cfg.n_samples, cfg.lr_final) == (64, 0.5)
     assert TrainConfig.from_dict({"n_samples": 24}).n_samples == 24

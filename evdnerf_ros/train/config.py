@@ -33,9 +33,10 @@ ADDED_KEYS = {"background_cells": 0, "span_fraction": 0.0, "empty_weight": 0.0}
 #: Options whose default depends on the backbone (None or left out: the backbone's value).
 #: ``rigid``: its learned poses settle only as the learning rate decays, and its part is sampled
 #: finer (Jet-Down 128x128, 5 min: margin closed 45 % with the plain defaults, 61 % with the
-#: decay, 64 % with both; ``planes`` is better without the decay: README, "Quality levers").
+#: decay, 64 % with both); ``hinge`` settles with the decay too (the demo's fork set: moving
+#: camera -20 % against -40 %); ``planes`` is better without it (README, "Quality levers").
 PLAIN_DEFAULTS = {"n_samples": 48, "lr_final": 1.0}
-BACKBONE_DEFAULTS = {"rigid": {"n_samples": 64, "lr_final": 0.1}}
+BACKBONE_DEFAULTS = {"rigid": {"n_samples": 64, "lr_final": 0.1}, "hinge": {"lr_final": 0.1}}
 
 
 def backbone_defaults(backbone) -> dict:
@@ -188,7 +189,7 @@ class TrainConfig:
     """Learning rate at the end of the run as a fraction of ``lr``: after the warm-up it
     decays exponentially with run progress (iterations, or training seconds with a
     ``minutes`` budget) from lr to lr_final x lr; 1 keeps it constant; None: the backbone's
-    (1; ``rigid`` 0.1)."""
+    (1; ``rigid`` and ``hinge`` 0.1)."""
     grad_clip: float = 1.0
     """Max global gradient norm; 0 disables clipping."""
     max_nonfinite_steps: int = 20

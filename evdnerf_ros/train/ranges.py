@@ -98,13 +98,9 @@ FIELD_KEYS = {
               "density_bias": (-1e3, 1e3, "float"), "init_range": ("pair", -1e3, 1e3),
               "seed": (0, 2 ** 63 - 1, "int?"), "shading": ("bool",),
               "static_time_resolution": (0, 8192, "int")},
-    # track: the moving part's first track (train.track fills it from the events; the field checks it)
-    "rigid": {"resolutions": ("list", 1, 8192, 16), "features": (1, 4096, "int"), "hidden": (1, 65536, "int"),
-              "hidden_layers": (0, 64, "int"), "density_activation": ("softplus", "trunc_exp"),
-              "density_bias": (-1e3, 1e3, "float"), "init_range": ("pair", -1e3, 1e3),
-              "seed": (0, 2 ** 63 - 1, "int?"), "shading": ("bool",),
-              "static_time_resolution": (0, 8192, "int"), "pose_lr_scale": (0.0, 1e3, "float")},
 }
+# track: the moving part's first track (train.track fills it from the events; the field checks it)
+FIELD_KEYS["rigid"] = {**FIELD_KEYS["hinge"], "pose_lr_scale": (0.0, 1e3, "float")}
 
 def number(value, where: Where, low, high, kind: str, low_open: bool = False,
            allow_none: bool = False):
