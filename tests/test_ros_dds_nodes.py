@@ -68,7 +68,9 @@ def test_publisher_and_subscriber_processes(tmp_path, dds_env):
                       "-p", f"scene_time_offset:={offset / 1e9}", "-p", "adaptive:=false", "-p", "chunk:=0.02",
                       "-p", "realtime_factor:=0.0", "-p", "wait_for_subscribers:=2", "-p", f"bag:={bag}",
                       "-r", "__node:=event_publisher"], dds_env)
-    rep = run_echo(EVENTS, count=0, idle=2.0, duration=60, png=tmp_path / "echo.png", npz=tmp_path / "echo.npz",
+    # idle counts from the start until the first message: long enough for the publisher process
+    # to start (a 2 s idle ended the echo just as the publisher began, 0 of 48 messages, in CI)
+    rep = run_echo(EVENTS, count=0, idle=8.0, duration=60, png=tmp_path / "echo.png", npz=tmp_path / "echo.npz",
                    print_fn=lambda *_: None)
     _, err = pub.communicate(timeout=60)
     assert pub.returncode == 0, err
