@@ -71,6 +71,8 @@ LEVERS = {
     "event-rays-0.8": {"event_ray_fraction": 0.8},
     "lr-0.005": {"lr": 0.005},
     "hinge": {"backbone": "hinge"},
+    "hinge-no-part-prior": {"backbone": "hinge", "part_empty_weight": 0.0},
+    "hinge-part-prior-0.3": {"backbone": "hinge", "part_empty_weight": 0.3},
     "rigid": {"backbone": "rigid"},
     "rigid-pose-lr-0.03": {"backbone": "rigid", "field": {"pose_lr_scale": 0.03}},
     "rigid-pose-lr-0.3": {"backbone": "rigid", "field": {"pose_lr_scale": 0.3}},

@@ -192,3 +192,43 @@ def test_session_yaml_checks_the_joint(tiny_train_h5, tmp_path, change, why):
     (session / "session.yaml").write_text(yaml.safe_dump(doc))
     with pytest.raises(InputError, match=f"servo.*{why}"):
         load_session(session)
+
+
+def test_the_part_prior_is_the_parts_mean_opacity_and_thins_only_the_part(tiny_train_h5):
+    """``part_empty_weight``: the moving part's mean opacity over one sample's length (hand
+    computed for a constant density), its gradient reaches the part alone, and training with it
+    leaves the part's density at random points lower than without; a field without a part
+    refuses it; hinge's default is on, a saved config from before it keeps it off."""
+    from evdnerf_ros.io.trainingset import TrainingSet
+    from evdnerf_ros.train.config import TrainConfig
+    from evdnerf_ros.train.trainer import Trainer
+
+    small = {"backbone": "hinge", "rays": 128, "n_samples": 16, "windows": [8], "window_switch": [],
+             "eval_every": 0, "log_every": 0, "checkpoint_every": 0, "empty_points": 256,
+             "field": {"resolutions": [8, 16], "features": 4}}
+    with TrainingSet(tiny_train_h5) as ts:
+        tr = Trainer(ts, {**small, "part_empty_weight": 1.0}, iters=1, log=lambda *_: None)
+        step = float(np.linalg.norm(tr.box[1] - tr.box[0])) / 16
+        real = tr.field.part_density
+        tr.field.part_density = lambda x, t: torch.full((x.shape[0],), 2.0)
+        assert float(tr.part_empty_prior()) == pytest.approx(1 - np.exp(-2.0 * step), rel=1e-5)
+        tr.field.part_density = real
+        tr.field.zero_grad()
+        tr.part_empty_prior().backward()
+        grads = {n: p.grad for n, p in tr.field.named_parameters()}
+        assert all(g is None or not g.any() for n, g in grads.items() if not n.startswith("moving."))
+        assert any(g is not None and g.any() for n, g in grads.items() if n.startswith("moving."))
+        x = torch.rand(2000, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+        t = torch.rand(2000, generator=torch.Generator().manual_seed(1))
+        dens = {}
+        for w in (0.0, 1.0):
+            tr = Trainer(ts, {**small, "part_empty_weight": w}, iters=40, log=lambda *_: None)
+            tr.train()
+            with torch.no_grad():
+                dens[w] = float(tr.field.part_density(x, t).mean())
+    assert dens[1.0] < 0.5 * dens[0.0], dens
+    assert TrainConfig(backbone="hinge").part_empty_weight == 1.0
+    assert TrainConfig().part_empty_weight == 0.0 and TrainConfig(backbone="rigid").part_empty_weight == 0.0
+    assert TrainConfig.from_dict({"backbone": "hinge"}, saved=True).part_empty_weight == 0.0
+    with pytest.raises(InputError, match="part_empty_weight.*planes field has no part"):
+        TrainConfig(backbone="planes", part_empty_weight=0.5)

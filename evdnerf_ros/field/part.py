@@ -113,6 +113,11 @@ class PartField(DynamicField, abc.ABC):
     def decode_static(self, features):
         return self.static.decode_static(features[1]) if self.static_time_resolution else features[1]
 
+    def part_density(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """(N,) density of the moving part alone at (N, 3) points of its own frame (box-normalised)
+        at (N,) normalised times: what the trainer's ``part_empty_weight`` prior keeps sparse."""
+        return self._activate(self.moving(x.to(torch.float32), self.part_inputs(t.to(torch.float32))))[0]
+
     def forward(self, x: torch.Tensor, t: torch.Tensor):
         return self.decode(self.space_features(x), t)
 

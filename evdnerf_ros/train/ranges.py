@@ -56,6 +56,7 @@ NUMBERS = {
     "time_l1_weight": (0.0, 1e9, "float", False),
     "empty_weight": (0.0, 1e9, "float", False),
     "empty_points": (1, 1 << 24, "int", False),
+    "part_empty_weight": (0.0, 1e9, "float", False),
     "threshold_lr": (0.0, 1e3, "float", True),
     "lr": (0.0, 1e3, "float", True),
     "lr_warmup_iters": (0, BIG, "int", False),
@@ -70,7 +71,7 @@ NUMBERS = {
     "checkpoint_every": (0, BIG, "int", False),
     "log_every": (0, BIG, "int", False),
 }
-NULLABLE = ("iters", "minutes", "n_samples", "lr_final")   # the last two: the backbone's default
+NULLABLE = ("iters", "minutes", "n_samples", "lr_final", "part_empty_weight")   # all but the first two: the backbone's default
 BOOLS = ("perturb", "dynamic_region", "learn_thresholds", "sample_reuse")
 #: windows: 1 to MAX_PHASES counts in [1, MAX_WINDOWS]; window_switch: fractions in (0, 1).
 MAX_WINDOWS = 1 << 20
@@ -161,6 +162,10 @@ def check_config(cfg, source: str = "training config") -> None:
                                       f"got {cfg.background_cells}")
     if cfg.learn_thresholds and cfg.supervision != "events":
         name("learn_thresholds").fail("needs supervision: events")
+    from ..field.part import PartField
+    if cfg.part_empty_weight and not issubclass(BACKBONES[cfg.backbone], PartField):
+        name("part_empty_weight").fail(f"is the moving part's prior, and a {cfg.backbone} field has no part; "
+                                       "set it to 0 or train backbone hinge or rigid")
     cfg.field = check_field(cfg.backbone, cfg.field, name("field"))
 
 

@@ -232,16 +232,30 @@ class Trainer:
             loss = loss + reg
         if cfg.empty_weight:
             loss = loss + cfg.empty_weight * self.empty_prior()
+        if cfg.part_empty_weight:
+            loss = loss + cfg.part_empty_weight * self.part_empty_prior()
         return loss
 
-    def empty_prior(self) -> torch.Tensor:
-        """Mean opacity over one sample's length (box diagonal / n_samples) of the static field
-        at ``empty_points`` uniform random points of the box (``empty_weight``)."""
-        cfg = self.cfg
-        x = torch.rand(cfg.empty_points, 3, generator=self.gen, device=self.device) * 2.0 - 1.0
-        density, _ = self.field.decode_static(self.field.space_features(x))
-        step = float(np.linalg.norm(self.box[1] - self.box[0])) / cfg.n_samples
+    def _random_points(self) -> torch.Tensor:
+        return torch.rand(self.cfg.empty_points, 3, generator=self.gen, device=self.device) * 2.0 - 1.0
+
+    def _mean_opacity(self, density: torch.Tensor) -> torch.Tensor:
+        """Mean opacity of ``density`` over one sample's length (box diagonal / n_samples)."""
+        step = float(np.linalg.norm(self.box[1] - self.box[0])) / self.cfg.n_samples
         return (-torch.expm1(-density * step)).mean()
+
+    def empty_prior(self) -> torch.Tensor:
+        """The static field's mean opacity at ``empty_points`` uniform random points of the box
+        (``empty_weight``)."""
+        density, _ = self.field.decode_static(self.field.space_features(self._random_points()))
+        return self._mean_opacity(density)
+
+    def part_empty_prior(self) -> torch.Tensor:
+        """The moving part's mean opacity at ``empty_points`` uniform random points of its own
+        frame, each at a uniform random time (``part_empty_weight``)."""
+        x = self._random_points()
+        t = torch.rand(x.shape[0], generator=self.gen, device=self.device)
+        return self._mean_opacity(self.field.part_density(x, t))
 
     def step(self) -> float | None:
         """One iteration; returns the loss, or None when the step was skipped."""
