@@ -44,13 +44,15 @@ SCENE = "fork"
 #: Rendered at this size in the sensor's centre; real time on 2 busy cores with the rate below.
 SCENE_SIZE = (48, 36)
 RATE_HZ = 125.0
-#: 6 turntable views over 0..180 deg, every third for validation: 4 training + 2 validation
-#: views between them, as the simulated demo's 4 + 2.
-VIEWS, VAL_EVERY = 6, 3
+#: 7 turntable views over 0..180 deg (30 deg apart), every third for validation: 5 training views
+#: (0, 30, 90, 120, 180 deg) + 2 validation views between them (60, 150 deg). With 6 views the
+#: last validation view (180 deg) lay 36 deg beyond the last training view: an extrapolation
+#: (pooled margin -32 % there against -0.3 % at the view between two training views).
+VIEWS, VAL_EVERY = 7, 3
 #: The capture test's short moves: the demo's time goes to training, not to waiting.
 CAPTURE = CaptureOptions(views=VIEWS, val_every=VAL_EVERY, turn_ms=300, home_ms=300, pre_roll_s=0.1,
                          settle_s=0.1)
-#: The demo's output is never a long wait on a stuck child: the capture of 6 views takes ~30 s.
+#: The demo's output is never a long wait on a stuck child: the capture of 7 views takes ~34 s.
 CAPTURE_TIMEOUT_S = 600.0
 
 
