@@ -19,10 +19,11 @@ It grows with each part of the toolkit. Today:
 4. draw each view's event image at mid-swing and the event-rate curves of all views (their
    onsets differ by the views' clock offsets);
 5. convert the synced session into a training set (TRAIN.h5) and read a dL image back;
-6. train the default `planes` field on the events for ``train_minutes`` (metrics.jsonl:
-   validation events-PSNR against wall time), evaluate it on the validation views (10
-   degrees off the training views; between them on the rig) at the trained and 4x finer
-   windows, write the GT vs prediction event images and the error-against-run-time report.
+6. train the field (``hinge`` where the set records the rig's joint, else ``planes``) on the
+   events for ``train_minutes`` (metrics.jsonl: validation events-PSNR against wall time),
+   evaluate it on the validation views (10 degrees off the training views; between them on the
+   rig) at the trained and 4x finer windows, write the GT vs prediction event images and the
+   error-against-run-time report.
 """
 
 from __future__ import annotations
