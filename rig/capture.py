@@ -584,7 +584,7 @@ class BiasLog:
     start: dict
     changes: list
     first: int = 0              # changes before this index are in ``start`` already
-    reported_ns: int = 0        # host time up to which changes are in a view record
+    reported: int = 0           # changes since the start already in a view record
 
     def _since_start(self) -> list:
         return [c for c in list(self.changes)[self.first:] if getattr(c, "host_ns", None) is not None]
@@ -608,19 +608,23 @@ class BiasLog:
         biases = self.at(begin)
         th, source = thresholds.of_biases(camera, biases)
         moves = []
-        for c in self._since_start():
-            if self.reported_ns < c.host_ns <= end:
-                when = "before" if c.host_ns <= begin else "recording" if c.host_ns <= bag_end else "repeat takes"
-                moves.append({"sensor_ns": _sensor_ns_at(clock, c), "when": when,
-                              "values": {n: int(v) for n, v in c.values.items()}, "source": c.source,
-                              "thresholds": thresholds.of_biases(camera, self.at(c.host_ns))[0]})
-        self.reported_ns = max(self.reported_ns, end)
+        # changes are appended in host-time order; one whose thread appended it only after the
+        # previous view's record was made (a loaded machine) goes into this one, "before" it
+        new = self._since_start()[self.reported:]
+        for c in new[:sum(c.host_ns <= end for c in new)]:
+            when = "before" if c.host_ns <= begin else "recording" if c.host_ns <= bag_end else "repeat takes"
+            moves.append({"sensor_ns": _sensor_ns_at(clock, c), "when": when,
+                          "values": {n: int(v) for n, v in c.values.items()}, "source": c.source,
+                          "thresholds": thresholds.of_biases(camera, self.at(c.host_ns))[0]})
+        self.reported += len(moves)
         return {"biases": biases, "bias_changes": moves, "thresholds": th, "thresholds_source": source}
 
 
 def _sensor_ns_at(clock, change) -> int | None:
     """A bias change's sensor time: its host time on ``clock``; else as the node logged it (its
-    driver's clock fit, None when that had too few samples)."""
+    driver's clock fit, None when that had too few samples). ``clock`` times arrivals, so a change
+    made before the first view of a stream that lags real time (a camera twin rendering slower)
+    can precede its zero: a negative time, before every view's."""
     try:
         return int(clock.host_ns_to_sensor_ns(int(change.host_ns)))
     except CameraError:                 # nothing timed had arrived

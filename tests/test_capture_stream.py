@@ -342,6 +342,11 @@ def test_views_record_the_biases_in_force_their_changes_and_the_thresholds_they_
     after = thresholds_from_biases(30, -20)
     assert v1["bias_changes"][1]["thresholds"] == {"c_pos": after[0], "c_neg": after[1]}
     assert log.view_record([_take(600, 700)], cam, model, cam.clock)["bias_changes"] == []      # each change once
+    # a change whose thread appended it only after the previous view's record (a loaded machine):
+    # not lost, it goes into the next view's record as before it
+    changes.append(Change({"bias_fo": 5}, 0, None, "parameter service", 650))
+    assert [(m["when"], m["values"]) for m in log.view_record([_take(800, 850)], cam, model, cam.clock)
+            ["bias_changes"]] == [("before", {"bias_fo": 5})]
     late = BiasLog(start, [Change({"bias_fo": 4}, 0, 555, "parameter service", 10)])
     assert late.view_record([_take(100, 200)], cam, model, ArrivalClock("empty"))["bias_changes"][0]["sensor_ns"] == 555
 
