@@ -475,3 +475,96 @@ def test_mixing_log_and_intensity_frames_and_huge_intervals():
     assert np.concatenate(parts).tobytes() == a.tobytes()
     with pytest.raises(InputError, match="2\\*\\*53"):
         gen.step(frames[0], 3000 + 2**53 + 1)
+
+
+# ---------------------------------------------------------------- per-pixel knots (step_knots)
+def _random_knots(rng, n_pix, t_end, max_knots=7, scale=1.0):
+    pix, t, L = [], [], []
+    for p in range(n_pix):
+        k = int(rng.integers(0, max_knots + 1))
+        times = np.sort(rng.choice(np.arange(1, t_end + 1), size=k, replace=False))
+        pix += [p] * k
+        t += times.tolist()
+        L += rng.normal(0.0, scale, k).tolist()
+    return np.array(pix, np.int64), np.array(t, np.int64), np.array(L)
+
+
+def test_knots_give_each_pixel_exactly_the_events_of_its_own_frames(rng):
+    """Each pixel's events are those of frames at its own knot times only (a 1-pixel generator fed
+    them), bit for bit; the whole is sorted by time, ties in pixel order; a pixel holds its last
+    knot's value, one without knots its value. Stiff values among them: black (log eps), HDR, a
+    jump of hundreds of thresholds in one segment."""
+    w, h, t_end = 7, 3, 2_000_000
+    opts = dict(c_pos=0.17, c_neg=0.23, refractory_ns=3_000)
+    for _ in range(5):
+        pix, t, L = _random_knots(rng, w * h, t_end)
+        L[pix == 0] = np.log(EPS)                         # black
+        L[pix == 1] = np.log(1e6 + EPS)                   # HDR
+        L[(pix == 2) & (t == t[pix == 2].max(initial=0))] = 60.0
+        start = rng.normal(0.0, 1.0, w * h)
+        gen = EventGenerator(w, h, **opts)
+        gen.reset_log(start.reshape(h, w), 0)
+        ev = gen.step_knots(pix, t, L, t_end)
+        assert np.all(np.diff(ev["t"].astype(np.int64)) >= 0) and gen.t_ns == t_end
+        key = ev["t"].astype(np.int64) * (w * h) + ev["y"].astype(np.int64) * w + ev["x"]
+        assert np.all(np.diff(key) >= 0)                  # ties: pixel order
+        for p in range(w * h):
+            one = EventGenerator(1, 1, **opts)
+            one.reset_log(np.array([[start[p]]]), 0)
+            mine = pix == p
+            want = [one.step_log(np.array([[v]]), int(tt)) for tt, v in zip(t[mine], L[mine])]
+            want = np.concatenate(want) if want else np.empty(0, EVENT_DTYPE)
+            got = ev[(ev["x"] == p % w) & (ev["y"] == p // w)]
+            assert np.array_equal(got["t"], want["t"]) and np.array_equal(got["p"], want["p"]), p
+            assert gen.last_log().ravel()[p] == (L[mine][-1] if mine.any() else start[p])
+    assert ev[(ev["x"] == 2) & (ev["y"] == 0)].size > 100
+
+
+def test_knots_at_common_times_are_the_frames_bit_for_bit(rng):
+    """Every pixel with knots at the same times: step_knots is step_log at those frames, noise of
+    the thresholds (mismatch, per interval) and refractory included."""
+    frames, t = random_video(rng, n=9)
+    logs = np.log(frames + EPS)
+    opts = dict(c_pos=0.15, c_neg=0.21, threshold_sigma=0.03, interval_sigma=0.02, refractory_ns=100_000, seed=4)
+    a = EventGenerator(6, 5, **opts)
+    a.reset_log(logs[0], int(t[0]))
+    want = np.concatenate([a.step_log(logs[i], int(t[i])) for i in range(1, len(t))])
+    b = EventGenerator(6, 5, **opts)
+    b.reset_log(logs[0], int(t[0]))
+    pix = np.tile(np.arange(30), len(t) - 1)
+    got = b.step_knots(pix, np.repeat(t[1:], 30), logs[1:].reshape(-1), int(t[-1]))
+    assert want.size > 0 and got.tobytes() == want.tobytes()
+    assert np.array_equal(a.reference(), b.reference())
+
+
+def test_knots_noise_is_drawn_over_the_whole_interval():
+    """Shot and leak noise: one draw over (t, t_end] at the configured rates; still pixels."""
+    gen = EventGenerator(20, 10, shot_noise_rate_hz=500.0, leak_rate_hz=200.0, seed=1)
+    gen.reset_log(np.zeros((10, 20)), 1_000)
+    ev = gen.step_knots(np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0), 1_000 + 2_000_000_000)
+    expect_on, expect_off = (250.0 + 200.0) * 200 * 2.0, 250.0 * 200 * 2.0
+    on, off = int((ev["p"] > 0).sum()), int((ev["p"] < 0).sum())
+    assert abs(on - expect_on) < 5 * np.sqrt(expect_on) and abs(off - expect_off) < 5 * np.sqrt(expect_off)
+    assert ev["t"].min() > 1_000 and ev["t"].max() <= 1_000 + 2_000_000_000
+    assert np.all(np.diff(ev["t"].astype(np.int64)) >= 0)
+
+
+def test_knots_bad_input_is_refused_and_changes_nothing():
+    gen = EventGenerator(4, 2)
+    ok = (np.array([0, 1]), np.array([10, 20]), np.array([0.5, -0.5]))
+    with pytest.raises(InputError, match="no frame yet"):
+        gen.step_knots(*ok, 20)
+    gen.reset_log(np.zeros((2, 4)), 0)
+    bad = [((np.array([0]), np.array([10, 20]), np.array([0.5, 0.1])), 20, "three 1-D arrays"),
+           ((np.array([0]), np.array([10.0]), np.array([0.5])), 20, "integers"),
+           ((np.array([0]), np.array([10]), np.array([np.nan])), 20, "finite"),
+           ((np.array([8]), np.array([10]), np.array([0.5])), 20, r"outside 0\.\.7"),
+           ((np.array([0]), np.array([0]), np.array([0.5])), 20, r"outside \(0, 20\]"),
+           ((np.array([0]), np.array([30]), np.array([0.5])), 20, r"outside \(0, 20\]"),
+           ((np.array([3, 3]), np.array([5, 5]), np.array([0.5, 0.6])), 20, "two knots at one time"),
+           (ok, 0, "not after")]
+    for args, t_end, match in bad:
+        with pytest.raises(InputError, match=match):
+            gen.step_knots(*args, t_end)
+        assert gen.t_ns == 0 and not gen.last_log().any() and gen.frames_processed == 1
+    assert gen.step_knots(*ok, 20).size == 4

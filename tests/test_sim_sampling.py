@@ -264,8 +264,8 @@ def test_per_pixel_sampling_of_one_signal_everywhere_is_the_image_mode():
 
 
 def test_per_pixel_sampling_refines_each_pixel_on_its_own():
-    """Each pixel's events are those of the image mode run on that pixel alone (to 1 ns: another
-    pixel's frame splits its segment, and the split point is rounded), for far fewer values."""
+    """Each pixel's events are those of the image mode run on that pixel alone (exactly: no other
+    pixel's time splits its segments), for far fewer values."""
     from evdnerf_ros.sim.sampling import simulate_pixels
 
     edge = SigmoidEdge(n=12)
@@ -280,7 +280,7 @@ def test_per_pixel_sampling_refines_each_pixel_on_its_own():
         mine = ev[ev["x"] == x]
         assert mine.size == alone.size > 0
         assert np.array_equal(mine["p"], alone["p"])
-        assert np.abs(mine["t"].astype(np.int64) - alone["t"].astype(np.int64)).max() <= 1
+        assert np.array_equal(mine["t"], alone["t"])
     assert np.all(np.diff(ev["t"].astype(np.int64)) >= 0)
 
 

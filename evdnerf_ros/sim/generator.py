@@ -310,6 +310,124 @@ class EventGenerator:
         idx, L1 = self._changed_checked_log(log_frame, f"frame {self.frames_processed} at t={t} ns")
         return self._step(idx, L1, t)
 
+    def step_knots(self, pix, t_ns, log_values, t_end) -> np.ndarray:
+        """Advance every pixel to ``t_end`` along its own piecewise-linear log signal; return the
+        events of (previous t, t_end], sorted by t (ties: pixel order, then crossing order).
+
+        Knot i says pixel ``pix[i]`` has log value ``log_values[i]`` at time ``t_ns[i]`` (int64,
+        in (previous t, t_end]). A pixel is linear from its value now to its first knot and
+        between its knots, and holds its last knot's value after it; a pixel without knots holds
+        its value. Each pixel's events are exactly those that frames at its own knot times give
+        it through :meth:`step_log`, whatever the other pixels' knots: no other pixel's time
+        splits its segments (feeding one frame per knot time would interpolate every pixel at
+        every time, and shift its crossings by the rounding of those split points). Only
+        segments that reach the pixel's next level up or down are worked out, one per pixel per
+        round. Shot and leak noise are drawn once over the whole interval; with per-interval
+        threshold noise (``interval_sigma``) each segment of a pixel is its own interval.
+        """
+        self._need_state()
+        t1 = self._check_time(t_end)
+        pix, t, L = self._check_knots(pix, t_ns, log_values, t1)
+        t0_all, dt_all = self._t, t1 - self._t
+        first = np.ones(pix.size, bool)
+        np.not_equal(pix[1:], pix[:-1], out=first[1:])
+        seg_t0 = np.empty_like(t)
+        seg_t0[first] = t0_all
+        seg_t0[~first] = t[:-1][~first[1:]]
+        seg_L0 = np.empty_like(L)
+        seg_L0[first] = self._L[pix[first]]
+        seg_L0[~first] = L[:-1][~first[1:]]
+        self.pixels_processed += pix.size
+        parts = self._segment_crossings(pix, seg_t0, seg_L0, t, L)
+        noisy = False
+        for rate, polarity in ((self.shot_noise_rate_hz, None), (self.leak_rate_hz, 1)):
+            if rate > 0:
+                npix, noff, npol = _noise.poisson_events(self._rng_noise, rate, self.n_pixels, dt_all, polarity)
+                if npix.size:
+                    noisy = True
+                    parts.append((npix, noff + t0_all, npol))
+        last = np.ones(pix.size, bool)
+        np.not_equal(pix[1:], pix[:-1], out=last[:-1])
+        self._L[pix[last]] = L[last]
+        self._I = None                  # intensities unknown from here on: compare in log next time
+        self._t = t1
+        self.frames_processed += 1
+        if not parts:
+            return empty_events()
+        ep = np.concatenate([q[0] for q in parts])
+        et = np.concatenate([q[1] for q in parts])
+        epol = np.concatenate([q[2] for q in parts])
+        # pixel-major, time order (stable: a pixel's rounds come in time order, crossings in order)
+        order = np.lexsort((et, ep)) if noisy else np.argsort(ep, kind="stable")
+        ep, et, epol = ep[order], et[order], epol[order]
+        if self.refractory_ns > 0:
+            keep = self._refractory(ep, et)
+            ep, et, epol = ep[keep], et[keep], epol[keep]
+        order = _stable_argsort_offsets(et - t0_all, dt_all)
+        out = np.empty(ep.size, EVENT_DTYPE)
+        out["t"] = et[order]
+        ps = ep[order]
+        out["x"] = self._xs[ps]
+        out["y"] = self._ys[ps]
+        out["p"] = epol[order]
+        return out
+
+    def _check_knots(self, pix, t_ns, log_values, t_end: int):
+        """(pix, t, L) of :meth:`step_knots`, checked, sorted pixel-major then by time."""
+        where = f"knots up to t={t_end} ns"
+        pix, t, L = np.asarray(pix), np.asarray(t_ns), np.asarray(log_values)
+        if not (pix.ndim == t.ndim == L.ndim == 1 and pix.size == t.size == L.size):
+            raise InputError(f"{where}: pixels, times and log values must be three 1-D arrays of one length "
+                             f"(got shapes {pix.shape}, {t.shape}, {L.shape})")
+        if pix.dtype.kind not in "iu" or t.dtype.kind not in "iu":
+            raise InputError(f"{where}: pixel indices and times must be integers (got {pix.dtype}, {t.dtype}); "
+                             "times are int64 nanoseconds")
+        if L.dtype.kind != "f" or not np.all(np.isfinite(L)):
+            raise InputError(f"{where}: log values must be finite floats (log(I + eps))")
+        if pix.size and (pix.min() < 0 or pix.max() >= self.n_pixels):
+            raise InputError(f"{where}: a pixel index is outside 0..{self.n_pixels - 1}")
+        t = t.astype(np.int64)
+        if t.size and (t.min() <= self._t or t.max() > t_end):
+            raise InputError(f"{where}: a knot time lies outside ({self._t}, {t_end}] ns")
+        pix = pix.astype(np.int64)
+        order = np.lexsort((t, pix))
+        pix, t, L = pix[order], t[order], L[order].astype(np.float64)
+        if np.any((pix[1:] == pix[:-1]) & (t[1:] == t[:-1])):
+            raise InputError(f"{where}: a pixel has two knots at one time")
+        return pix, t, L
+
+    def _segment_crossings(self, pix, t0, L0, t1, L1) -> list:
+        """The crossings of the segments (pix, t0, L0) -> (t1, L1), pixel-major and in time order
+        per pixel, as [(pixel, absolute time, polarity)] per round. A segment can fire only if it
+        reaches the pixel's next level up or down, and those move only when it fires: each round
+        works out the first such segment of every pixel that has one (later segments of a pixel
+        wait for its new levels); per-interval noise redraws C at every moving segment."""
+        out = []
+        seg = np.flatnonzero(L1 != L0)          # a flat segment never fires
+        stop = np.empty(self.n_pixels, np.int64)
+        while seg.size:
+            p = pix[seg]
+            if self.interval_sigma == 0:
+                hit = seg[(L1[seg] >= self._next_up[p]) | (L1[seg] <= self._next_dn[p])]
+            else:
+                hit = seg
+            if not hit.size:
+                break
+            hp = pix[hit]
+            head = np.ones(hit.size, bool)
+            np.not_equal(hp[1:], hp[:-1], out=head[1:])
+            now = hit[head]                     # each pixel's first segment that fires
+            cp, ct, cpol = self._crossings(pix[now], L1[now], t1[now] - t0[now], L0[now])
+            if cp.size:
+                at = np.empty(self.n_pixels, np.int64)
+                at[pix[now]] = t0[now]
+                out.append((cp, at[cp] + ct, cpol))
+            # only the later segments of the pixels that fired can fire next (against new levels)
+            stop[p] = np.iinfo(np.int64).max
+            stop[pix[now]] = now
+            seg = seg[seg > stop[p]]
+        return out
+
     def generate(self, frames, t_ns) -> np.ndarray:
         """Batch helper: reset at frames[0] / t_ns[0], step through the rest, return all events."""
         t = np.asarray(t_ns)
@@ -380,10 +498,11 @@ class EventGenerator:
         out["p"] = pol[order]
         return out
 
-    def _crossings(self, idx: np.ndarray, L1: np.ndarray, dt: int):
+    def _crossings(self, idx: np.ndarray, L1: np.ndarray, dt, L0: np.ndarray | None = None):
         """All threshold crossings of the pixels `idx` (new log values `L1`): (pixel, time offset
         in (0, dt], polarity), pixel-major (ascending pixel, then crossing order). Updates the
-        reference counts; the caller updates the stored log frame afterwards."""
+        reference counts; the caller updates the stored log frame afterwards. ``dt`` and the
+        values the pixels move from, ``L0`` (default: the stored log frame), may be per pixel."""
         full = idx.size == self.n_pixels
         cp = self._cp if np.ndim(self._cp) == 0 or full else self._cp[idx]
         cn = self._cn if np.ndim(self._cn) == 0 or full else self._cn[idx]
@@ -416,7 +535,9 @@ class EventGenerator:
             return (np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.int8))
         pidx = idx[sel]
         L1 = L1[sel]
-        L0 = self._L[pidx]
+        L0 = self._L[pidx] if L0 is None else L0[sel]
+        if np.ndim(dt):
+            dt = dt[sel]
         base, a, b = base[sel], a[sel], b[sel]
         if np.ndim(cp):
             cp = cp[sel]
@@ -448,6 +569,8 @@ class EventGenerator:
             keep = np.flatnonzero(moved)
             pidx, L0, L1, up, step, fixed, base, lo, hi, n, a, b = (
                 v[keep] for v in (pidx, L0, L1, up, step, fixed, base, lo, hi, n, a, b))
+            if np.ndim(dt):
+                dt = dt[keep]
             if np.ndim(cp):
                 cp = cp[keep]
             if np.ndim(cn):
@@ -467,7 +590,7 @@ class EventGenerator:
         # (level - L0) * dt / (L1 - L0); the levels are evenly spaced by `step`, so the offset
         # is first + k * spacing (the first level is the exact lattice value; the spacing
         # form differs from evaluating each level by ~1e-16 * dt, far below 1 ns).
-        scale = float(dt) / (L1 - L0)
+        scale = np.asarray(dt, np.float64) / (L1 - L0)
         first = (base + ((lo + 1) * step + fixed) - L0) * scale
         spacing = step * scale
         starts = np.cumsum(n) - n
@@ -477,7 +600,7 @@ class EventGenerator:
         k += np.repeat(first, n)
         toff = np.rint(k, out=k)
         # Guard against round-off only: the exact offset is in (0, dt] by construction.
-        np.clip(toff, 1, dt, out=toff)
+        np.clip(toff, 1, np.repeat(dt, n) if np.ndim(dt) else dt, out=toff)
         pol = np.repeat(np.where(up, 1, -1).astype(np.int8), n)
         return np.repeat(pidx, n), toff.astype(np.int64), pol
 

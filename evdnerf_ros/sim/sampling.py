@@ -280,9 +280,10 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
     refined together up to ``PIXEL_BATCH`` pixels) is one call.  So
     a moving camera, where every image fails somewhere (each moving edge), renders only the
     pixels along the edges at the finer levels, in a few batched calls instead of one image per
-    grid time.  Every rendered value is fed (as the image mode feeds ``a -> m -> b``): the
-    generator gets one frame per time any pixel was rendered at, each pixel linear between its
-    own rendered times, so its events are those of its own piecewise-linear signal.  Each
+    grid time.  Every rendered value is fed (as the image mode feeds ``a -> m -> b``), each pixel
+    on its own (``EventGenerator.step_knots``): its events are exactly those of its own
+    piecewise-linear signal, and only the segments that reach a pixel's next level are worked
+    out (no frame per time any pixel was rendered at, no interpolation of the others).  Each
     pixel's signal is accepted by the same bound as an image mode's piece (``tolerance_c``);
     it is not refined where only *other* pixels needed it (the difference from that mode).
     ``renders`` counts the distinct times rendered, ``pixels_rendered`` the values.
@@ -389,42 +390,24 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
 
 
 def _feed_knots(generator: EventGenerator, pix, j, L, times, chunks, stats, progress) -> np.ndarray:
-    """Feed the generator one frame per distinct grid index of the knots ``(pix, j, L)`` after
-    the first (every pixel has a knot at the first and the last), each pixel linear between
-    its own knots; return the last frame (flat)."""
-    by_pixel = np.lexsort((j, pix))
-    nxt = np.empty_like(by_pixel)                # each knot's successor along its pixel
-    nxt[by_pixel[:-1]] = by_pixel[1:]
-    nxt[by_pixel[-1]] = by_pixel[-1]
-    ends = pix[by_pixel[1:]] != pix[by_pixel[:-1]]
-    nxt[by_pixel[:-1][ends]] = by_pixel[:-1][ends]  # a pixel's last knot has none
-    by_time = np.argsort(j, kind="stable")
-    rows, starts = np.unique(j[by_time], return_index=True)
-    bounds = np.append(starts, by_time.size)
+    """Step the generator to the last of the knots ``(pix, j, L)`` (every pixel has a knot at the
+    first grid index and the last), each pixel linear between its own knots
+    (``EventGenerator.step_knots``: no other pixel's time splits its segments); return the
+    last frame (flat). ``frames_fed`` and the steps count the distinct knot times after the first,
+    as a feed of one frame per time would."""
+    rows = np.unique(j)
     t_rows = times(rows)
-    n_pix = generator.n_pixels
-    left_t, left_L = np.empty(n_pix, np.int64), np.empty(n_pix)
-    right_t, right_L = np.empty(n_pix, np.int64), np.empty(n_pix)
-    shape = (generator.height, generator.width)
-    frame = None
-    for r in range(rows.size):
-        k = by_time[bounds[r]:bounds[r + 1]]
-        p, s = pix[k], nxt[k]
-        left_t[p], left_L[p] = t_rows[r], L[k]
-        right_t[p], right_L[p] = times(j[s]), L[s]
-        if r == 0:
-            continue
-        span = right_t - left_t
-        frac = (t_rows[r] - left_t) / np.where(span > 0, span, 1)
-        frame = left_L + (right_L - left_L) * frac    # exact where rendered (frac 0)
-        ev = generator.step_log(frame.reshape(shape), int(t_rows[r]))
-        if ev.size:
-            chunks.append(ev)
-        stats.frames_fed += 1
-        dt = int(t_rows[r] - t_rows[r - 1])
-        if stats.frames_fed == 1 or dt < stats.smallest_step_ns:
-            stats.smallest_step_ns = dt
-        stats.largest_step_ns = max(stats.largest_step_ns, dt)
-        if progress is not None:
-            progress(int(t_rows[r]))
-    return frame
+    later = j != rows[0]
+    ev = generator.step_knots(pix[later], times(j[later]), L[later], int(t_rows[-1]))
+    if ev.size:
+        chunks.append(ev)
+    if rows.size > 1:
+        steps = np.diff(t_rows)
+        smallest = int(steps.min())
+        stats.smallest_step_ns = smallest if stats.frames_fed == 0 else min(stats.smallest_step_ns, smallest)
+        stats.largest_step_ns = max(stats.largest_step_ns, int(steps.max()))
+        stats.frames_fed += rows.size - 1
+    if progress is not None:
+        for t in t_rows[1:].tolist():
+            progress(t)
+    return generator.last_log().ravel()
