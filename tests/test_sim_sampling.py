@@ -424,6 +424,14 @@ def test_per_pixel_motion_guard_splits_only_where_the_content_can_reach():
     assert wrong.size < ev.size / 2
     unbounded, st_inf = run(lambda a, b: np.tile([-np.inf, -np.inf, np.inf, np.inf], (np.size(a), 1)))
     assert np.array_equal(unbounded, everywhere) and st_inf.pixels_rendered == st_all.pixels_rendered
+    # without the guard too: a pixel out of a top piece's reach holds its value, never rendered
+    # after the start frame (the strip: 2 values per top piece saved), the same events
+    kw = dict(min_step_ns=min_step, max_step_ns=span // 4)
+    free, st_free = simulate_pixels(pixels, 0, span, EventGenerator(w + strip, 1), **kw)
+    held, st_held = simulate_pixels(pixels, 0, span, EventGenerator(w + strip, 1), reach_px=box(0.0, w - 1.0), **kw)
+    assert free.size > 0 and np.array_equal(held, free)
+    assert st_held.pixels_held == strip * 4 and st_free.pixels_held == 0
+    assert st_held.pixels_rendered == st_free.pixels_rendered - strip * 4 * 2
 
 
 def test_box_reach_holds_every_point_of_the_box_while_the_camera_moves():

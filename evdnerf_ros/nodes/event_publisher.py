@@ -420,9 +420,10 @@ class EventPublisher(Node):
                 self._camera_info(t)
                 next_info = t + info_every
             info_subs = subs
-            travel = self._field_travel(t, tb) if guard else None
+            # a moving camera's image travel: the guard's bound, and per pixel where anything can change
+            travel = self._field_travel(t, tb) if guard or (per_pixel and moving) else None
             adaptive = dict(tolerance_c=p["tolerance_c"], min_step_ns=p["min_step_ns"],
-                            max_step_ns=min(p["max_step_ns"], tb - t), travel_px=travel,
+                            max_step_ns=min(p["max_step_ns"], tb - t), travel_px=travel if guard else None,
                             max_travel_px=p["max_travel_px"])
             if per_pixel:
                 events, st = simulate_pixels(self.render_pixels, t, tb, self.generator, **adaptive,

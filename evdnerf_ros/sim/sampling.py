@@ -84,6 +84,7 @@ class SamplingStats:
     largest_step_ns: int = 0    # longest interval fed to the generator
     max_deviation_c: float = 0.0  # largest accepted midpoint deviation, in units of C
     pixels_rendered: int = 0    # per-pixel mode: pixel values rendered (image modes: 0)
+    pixels_held: int = 0        # per-pixel mode: pixel pieces out of reach_px, held without a render
     events: int = 0
     render_seconds: float = 0.0
     wall_seconds: float = 0.0
@@ -271,6 +272,8 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
     travelling further is split for every pixel, whatever its midpoint says; with
     ``reach_px(a, b)`` -> (N, 4) x0 y0 x1 y1 per piece [a[k], b[k]] (``motion.ImageTravel.reach``:
     the image box outside which no pixel changes during it) only for the pixels in that box).
+    ``reach_px`` also leaves out what cannot change: a pixel outside the box of a top piece holds
+    its value over it and is not rendered (``pixels_held``), with or without the guard.
 
     ``render_pixels(t_ns, pixels)`` -> linear intensity of row-major pixel ``pixels[i]`` at
     time ``t_ns[i]`` (both (M,) int64; many times in one call).  The grid, the top pieces and
@@ -336,13 +339,20 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
         pix, lo, hi = np.tile(every, firsts.size), np.repeat(firsts, n_pix), np.repeat(lasts, n_pix)
         mid = (lo + hi) // 2
         wide = hi - lo > 1
-        both = render_log(np.concatenate([hi, mid[wide]]), np.concatenate([pix, pix[wide]]))
-        kp, kj, kL = [every, pix, pix[wide]], [lo[:n_pix], hi, mid[wide]], [L_now, both]   # knots: all rendered
-        Lb = both[:pix.size]
+        # a pixel out of its top piece's reach keeps its value over it: nothing rendered for it
+        seen = _in_reach(reach_px, times(firsts), times(lasts), generator.width, n_pix)
+        at_hi, at_mid = seen, seen & wide
+        both = render_log(np.concatenate([hi[at_hi], mid[at_mid]]), np.concatenate([pix[at_hi], pix[at_mid]]))
+        kp, kj, kL = [every, pix[at_hi], pix[at_mid]], [lo[:n_pix], hi[at_hi], mid[at_mid]], [L_now, both]  # knots
+        n_hi = int(at_hi.sum())
+        Lb = np.empty(pix.size)
+        Lb[at_hi] = both[:n_hi]
+        _hold(Lb.reshape(firsts.size, n_pix), ~seen.reshape(firsts.size, n_pix), L_now)
         La = np.concatenate([L_now, Lb[:-n_pix]])
-        stats.at_min_step += int((~wide).sum())
-        stats.intervals += int((~wide).sum())
-        pix, lo, hi, La, Lb, Lm = pix[wide], lo[wide], hi[wide], La[wide], Lb[wide], both[pix.size:]
+        stats.at_min_step += int((~wide & seen).sum())
+        stats.pixels_held += int((~seen).sum())
+        stats.intervals += int((~at_mid).sum())
+        pix, lo, hi, La, Lb, Lm = pix[at_mid], lo[at_mid], hi[at_mid], La[at_mid], Lb[at_mid], both[n_hi:]
         while pix.size:
             mid = (lo + hi) // 2
             ta, tb, tm = times(lo), times(hi), times(mid)
@@ -382,20 +392,42 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
                 kj.append((lo + hi) // 2)
                 kL.append(Lm)
         L_now = _feed_knots(generator, np.concatenate(kp), np.concatenate(kj), np.concatenate(kL),
-                            times, chunks, stats, progress)
+                            int(lasts[-1]), times, chunks, stats, progress)
     events = np.concatenate(chunks) if chunks else empty_events()
     stats.events = int(events.size)
     stats.wall_seconds = time.perf_counter() - wall0
     return events, stats
 
 
-def _feed_knots(generator: EventGenerator, pix, j, L, times, chunks, stats, progress) -> np.ndarray:
-    """Step the generator to the last of the knots ``(pix, j, L)`` (every pixel has a knot at the
-    first grid index and the last), each pixel linear between its own knots
-    (``EventGenerator.step_knots``: no other pixel's time splits its segments); return the
-    last frame (flat). ``frames_fed`` and the steps count the distinct knot times after the first,
-    as a feed of one frame per time would."""
-    rows = np.unique(j)
+def _in_reach(reach_px, a: np.ndarray, b: np.ndarray, width: int, n_pix: int) -> np.ndarray:
+    """(pieces * n_pix,) bool, piece-major: the pixels inside ``reach_px``'s box of each piece
+    [a[k], b[k]] (all without ``reach_px`` or where it has no boxes)."""
+    box = reach_px(a, b) if reach_px is not None else None
+    if box is None:
+        return np.ones(a.size * n_pix, bool)
+    x, y = np.arange(n_pix) % width, np.arange(n_pix) // width
+    inside = ((x[None, :] >= box[:, :1]) & (x[None, :] <= box[:, 2:3])
+              & (y[None, :] >= box[:, 1:2]) & (y[None, :] <= box[:, 3:4]))
+    return inside.ravel()
+
+
+def _hold(Lb: np.ndarray, held: np.ndarray, L_start: np.ndarray) -> None:
+    """Pieces' end values (pieces, n_pix), in place: a held pixel's is its value at the piece's
+    start (the previous piece's end, ``L_start`` for the first)."""
+    prev = L_start
+    for k in range(Lb.shape[0]):
+        row = Lb[k]
+        row[held[k]] = prev[held[k]]
+        prev = row
+
+
+def _feed_knots(generator: EventGenerator, pix, j, L, j_end: int, times, chunks, stats, progress) -> np.ndarray:
+    """Step the generator to grid index ``j_end`` along the knots ``(pix, j, L)`` (every pixel has
+    one at the first grid index, its value now), each pixel linear between its own knots and
+    holding its last (``EventGenerator.step_knots``: no other pixel's time splits its segments);
+    return the last frame (flat). ``frames_fed`` and the steps count the distinct knot times
+    after the first and ``j_end``, as a feed of one frame per time would."""
+    rows = np.unique(np.append(j, j_end))
     t_rows = times(rows)
     later = j != rows[0]
     ev = generator.step_knots(pix[later], times(j[later]), L[later], int(t_rows[-1]))
