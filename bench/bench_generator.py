@@ -229,10 +229,10 @@ def knots(reps, chunk_ns=10_000_000, chunks=5):
         captured = []
         real = sampling._feed_knots
 
-        def capture(generator, pix, j, L, times, *rest):
+        def capture(generator, pix, j, L, j_end, times, *rest):
             later = j != j.min()
             captured.append((generator.t_ns, pix[later].copy(), times(j[later]), L[later].copy()))
-            return real(generator, pix, j, L, times, *rest)
+            return real(generator, pix, j, L, j_end, times, *rest)
 
         sampling._feed_knots = capture
         try:
