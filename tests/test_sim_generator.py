@@ -568,3 +568,17 @@ def test_knots_bad_input_is_refused_and_changes_nothing():
             gen.step_knots(*args, t_end)
         assert gen.t_ns == 0 and not gen.last_log().any() and gen.frames_processed == 1
     assert gen.step_knots(*ok, 20).size == 4
+
+
+def test_knots_at_the_extremes_of_time():
+    """A 1 ns segment crossing ten levels stamps them all at its end; a segment of 2**53 ns (the
+    longest interval) places its crossings within a few ns of the exact times."""
+    gen = EventGenerator(2, 1, c_pos=0.2, c_neg=0.2)
+    gen.reset_log(np.zeros((1, 2)), 0)
+    span = 1 << 53
+    ev = gen.step_knots(np.array([0, 0, 1]), np.array([1, 2, span]), np.array([2.0 + 1e-9, 0.0, 1.0 + 1e-9]), span)
+    fast, slow = ev[ev["x"] == 0], ev[ev["x"] == 1]
+    assert fast["t"].tolist() == [1] * 10 + [2] * 10 and fast["p"].tolist() == [1] * 10 + [-1] * 10
+    exact = np.array([Fraction(k, 5) / (1 + Fraction(1, 10**9)) * span for k in range(1, 6)], dtype=object)
+    assert slow.size == 5 and np.all(slow["p"] == 1)
+    assert max(abs(int(t) - float(e)) for t, e in zip(slow["t"], exact)) <= 4
