@@ -370,8 +370,7 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
                 forced = far[which.ravel()]
                 box = reach_px(ta, tb) if reach_px is not None and forced.any() else None
                 if box is not None:                 # a pixel the content cannot reach stays flat
-                    x, y, b = pix % generator.width, pix // generator.width, box[which.ravel()]
-                    forced &= (x >= b[:, 0]) & (x <= b[:, 2]) & (y >= b[:, 1]) & (y <= b[:, 3])
+                    forced &= _inside(pix, generator.width, box[which.ravel()])
                 ok &= ~forced
             if ok.any():
                 stats.intervals += int(ok.sum())
@@ -405,10 +404,13 @@ def _in_reach(reach_px, a: np.ndarray, b: np.ndarray, width: int, n_pix: int) ->
     box = reach_px(a, b) if reach_px is not None else None
     if box is None:
         return np.ones(a.size * n_pix, bool)
-    x, y = np.arange(n_pix) % width, np.arange(n_pix) // width
-    inside = ((x[None, :] >= box[:, :1]) & (x[None, :] <= box[:, 2:3])
-              & (y[None, :] >= box[:, 1:2]) & (y[None, :] <= box[:, 3:4]))
-    return inside.ravel()
+    return _inside(np.tile(np.arange(n_pix), a.size), width, np.repeat(box, n_pix, axis=0))
+
+
+def _inside(pix: np.ndarray, width: int, box: np.ndarray) -> np.ndarray:
+    """Whether row-major pixel ``pix[i]`` lies in ``box[i]`` (x0 y0 x1 y1, inclusive)."""
+    x, y = pix % width, pix // width
+    return (x >= box[:, 0]) & (x <= box[:, 2]) & (y >= box[:, 1]) & (y <= box[:, 3])
 
 
 def _hold(Lb: np.ndarray, held: np.ndarray, L_start: np.ndarray) -> None:
