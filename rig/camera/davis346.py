@@ -38,8 +38,8 @@ import time
 
 import numpy as np
 
-from .davis_words import DavisWordDecoder
-from .device import Device, EventChunk, UsbLink
+from .davis_words import DavisWordDecoder, DavisWordEncoder
+from .device import SAMPLE_EVENT, Device, EventChunk, UsbLink
 from .dvxplorer import libcaer_packet
 from .errors import CameraError, CameraProtocolError
 
@@ -424,6 +424,13 @@ class DAVIS346(Device):
 
     def _decode(self, data: bytes):
         return self._decoder.feed(data)
+
+    def _sample_words(self) -> bytes:
+        return DavisWordEncoder(self.width, self.height, "DAVIS346").encode(SAMPLE_EVENT)
+
+    def warm_up(self) -> None:
+        super().warm_up()
+        libcaer_packet(SAMPLE_EVENT, 0)      # the recorder's packet encoder loads its kernel too
 
     def _sensor_time_ns(self) -> int | None:
         if self._decoder is None or self._decoder.words == 0:

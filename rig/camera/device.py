@@ -62,6 +62,10 @@ class RawChunk:
     seq: int              # transfer completion counter (gaps = dropped chunks)
 
 
+#: the one event a model's ``_sample_words`` encodes (sensor time 1 us, pixel 0, 0, ON)
+SAMPLE_EVENT = np.array([(1000, 0, 0, 1)], EVENT_DTYPE)
+
+
 @dataclass(frozen=True)
 class EventChunk:
     """The decoded content of one RawChunk: events (EVENT_DTYPE, sensor ns from the
@@ -324,7 +328,7 @@ class Device(abc.ABC):
     * ``_start_hardware()`` (after the transfers are queued) / ``_stop_hardware()``;
     * ``_reset_decoder()`` and ``_decode(data) -> (events, triggers)`` (streaming decoder
       carrying state across chunks, times in int64 sensor ns unwrapped from the sensor's
-      zero); optional ``_sensor_time_ns()`` -> the newest sensor time the decoder has seen
+      zero); ``_sample_words()`` -> a one-event sample the decoder is warmed with; optional ``_sensor_time_ns()`` -> the newest sensor time the decoder has seen
       (time words included), used for the clock samples; optional ``_decoder_state()`` and
       ``resume_words(chunk)`` where a recording cut from a running stream needs its decoder's
       state first (EVT 3.0);
@@ -427,7 +431,7 @@ class Device(abc.ABC):
         if self._stream is not None:
             return
         self.stats = StreamStats()
-        self._reset_decoder()
+        self.warm_up()                  # ends with a fresh decoder
         with self._clock_lock:
             self._clock_samples.clear()
             self._clock, self._clock_dirty = None, False
@@ -574,6 +578,23 @@ class Device(abc.ABC):
 
     def _sensor_time_ns(self) -> int | None:
         return None
+
+    def _sample_words(self) -> bytes:
+        """A few bytes of this model's stream holding one event (its own word encoder's output),
+        for :meth:`warm_up`; b"" where there is nothing to warm."""
+        return b""
+
+    def warm_up(self) -> None:
+        """Decode a one-event sample (:meth:`_sample_words`) with a throwaway decoder, then start a
+        fresh one. The decoder's compiled kernels load on their first call in a process: ~0.5 s,
+        seconds on a loaded machine, which must not fall inside a recording's first transfers
+        (the window is wall time: it would lose that much of the stream). :meth:`start` calls it;
+        cheap once loaded."""
+        sample = self._sample_words()
+        if sample:
+            self._reset_decoder()
+            self._decode(sample)
+        self._reset_decoder()
 
     def _decoder_state(self) -> tuple:
         """The stream decoder's state that :meth:`resume_words` needs (() where none)."""

@@ -33,8 +33,8 @@ import numpy as np
 from evdnerf_ros.events.codecs import encode as encode_events
 from evdnerf_ros.events.types import EVENT_DTYPE
 
-from .caer_words import CaerWordDecoder
-from .device import Device, EventChunk, UsbLink
+from .caer_words import CaerWordDecoder, CaerWordEncoder
+from .device import SAMPLE_EVENT, Device, EventChunk, UsbLink
 from .errors import CameraError, CameraProtocolError
 
 __all__ = ["DVXplorer", "BIASES", "BIAS_PRESETS", "libcaer_packet", "thresholds_from_biases", "BASE_THRESHOLD"]
@@ -342,6 +342,13 @@ class DVXplorer(Device):
 
     def _decode(self, data: bytes):
         return self._decoder.feed(data)
+
+    def _sample_words(self) -> bytes:
+        return CaerWordEncoder(self.width, self.height, "DVXplorer").encode(SAMPLE_EVENT)
+
+    def warm_up(self) -> None:
+        super().warm_up()
+        libcaer_packet(SAMPLE_EVENT, 0)      # the recorder's packet encoder loads its kernel too
 
     def _sensor_time_ns(self) -> int | None:
         if self._decoder is None or self._decoder.words == 0:

@@ -36,11 +36,11 @@ import time
 import numpy as np
 
 from evdnerf_ros.events.codecs import evt3 as _evt3
-from evdnerf_ros.events.codecs import make_decoder
+from evdnerf_ros.events.codecs import make_decoder, make_encoder
 
 from . import evk4_registers as R
 from .biases import BiasRange, check_biases, read_bias_file, write_bias_file
-from .device import Device, UsbLink
+from .device import SAMPLE_EVENT, Device, UsbLink
 from .errors import CameraDisconnected, CameraError, CameraProtocolError
 
 __all__ = ["EVK4", "thresholds_from_biases", "BASE_THRESHOLD", "THRESHOLD_E_FOLD"]
@@ -213,6 +213,9 @@ class EVK4(Device):
     # --- decoding ----------------------------------------------------------------------
     def _reset_decoder(self) -> None:
         self._decoder = make_decoder("evt3", source=f"{self.name} bulk IN 0x81")
+
+    def _sample_words(self) -> bytes:
+        return make_encoder("evt3").encode(SAMPLE_EVENT)
 
     def _decode(self, data: bytes) -> tuple[np.ndarray, np.ndarray]:
         if self._decoder is None:

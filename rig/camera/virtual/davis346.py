@@ -44,6 +44,7 @@ from evdnerf_ros.events.types import EVENT_DTYPE, TRIGGER_DTYPE
 from .. import davis346 as D
 from ..caer_words import TRIGGER_EDGE, TRIGGER_PULSE
 from ..davis_words import ApsFrame, DavisWordEncoder
+from ..device import SAMPLE_EVENT
 from .dvxplorer import _as_source
 from .scene_source import EmittedTruth
 from .usb import STALL, EmulatedUsbDevice, EndpointSpec
@@ -125,6 +126,9 @@ class VirtualDAVIS346(EmulatedUsbDevice, EmittedTruth):
         self._t0_ns = 0
         self._produced_us = 0
         self._encoder = DavisWordEncoder(self.width, self.height)
+        # load the encoder's compiled kernel now, not inside the first event transfer's USB handler
+        # (~0.5 s there, seconds on a loaded machine: every other request of the device waits)
+        DavisWordEncoder(self.width, self.height).encode(SAMPLE_EVENT)
         self._thresholds = None
         self._aps_next_us: int | None = None
         self._aps_open: tuple[int, int] | None = None      # (start us, end us) of the frame being exposed

@@ -41,6 +41,7 @@ from evdnerf_ros.events.types import EVENT_DTYPE, TRIGGER_DTYPE
 from .. import dvxplorer as D
 from ..dvxplorer import BASE_THRESHOLD, thresholds_from_biases   # the driver's model: one copy
 from ..caer_words import (TRIGGER_EDGE, TRIGGER_PULSE, CaerWordEncoder, canonical_order)
+from ..device import SAMPLE_EVENT
 from .scene_source import EmittedTruth, GivenEvents
 from .usb import STALL, EmulatedUsbDevice, EndpointSpec
 
@@ -111,6 +112,9 @@ class VirtualDVXplorer(EmulatedUsbDevice, EmittedTruth):
         self._t0_ns = 0
         self._produced_us = 0
         self._encoder = CaerWordEncoder(self.width, self.height)
+        # load the encoder's compiled kernel now, not inside the first event transfer's USB handler
+        # (~0.5 s there, seconds on a loaded machine: every other request of the device waits)
+        CaerWordEncoder(self.width, self.height).encode(SAMPLE_EVENT)
         self._thresholds = None
 
     # --- registers ------------------------------------------------------------------

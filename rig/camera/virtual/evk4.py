@@ -42,6 +42,7 @@ from evdnerf_ros.events.codecs import make_encoder
 from evdnerf_ros.events.types import EVENT_DTYPE, TRIGGER_DTYPE
 
 from .. import evk4_registers as R
+from ..device import SAMPLE_EVENT
 from ..evk4 import thresholds_from_biases       # the driver's model: one copy, the twin follows it
 from .scene_source import EmittedTruth
 from .usb import STALL, EmulatedUsbDevice, EndpointSpec
@@ -120,6 +121,9 @@ class VirtualEVK4(EmulatedUsbDevice, EmittedTruth):
         self._produced_us = -1        # sensor time streamed so far (events <= it are out)
         self._t0_ns = 0               # monotonic ns of sensor time 0
         self._encoder = None
+        # load the encoder's compiled kernel now, not inside the first event transfer's USB handler
+        # (~0.5 s there, seconds on a loaded machine: every other request of the device waits)
+        make_encoder("evt3").encode(SAMPLE_EVENT)
 
     # --- register map -------------------------------------------------------------------
     def _reset_registers(self) -> None:
