@@ -422,3 +422,46 @@ def test_the_session_layout_reads_and_checks_per_view_thresholds_and_biases(tmp_
         assert not (tmp_path / "S" / "session.yaml").exists()
     path = write_session_yaml(tmp_path / "S", _session(tmp_path, **GOOD))
     assert yaml.safe_load(Path(path).read_text())["views"][0]["bias_changes"][0]["sensor_ns"] == 123
+
+
+def test_a_recording_holds_every_transfer_that_arrived_in_its_window(tmp_path, rng):
+    """`camera record --duration D`: a consumer that falls behind (its first read stalls past the
+    window's end: a cold decoder on a loaded machine) still writes every transfer that arrived
+    within the D seconds and waited in the queue, and none that came later."""
+    from rig.camera.record import record
+
+    class Queued(ScriptedEVK4):
+        """Transfers arrive every 5 ms from start() on, into a queue the reader takes them from;
+        the first read stalls 0.7 s."""
+
+        def start(self):
+            super().start()
+            self._arrivals = []
+            self._stalled = False
+
+        def read_raw(self, timeout_s: float = 1.0):
+            if not self._stalled:
+                self._stalled = True
+                time.sleep(0.7)
+            now = time.monotonic_ns()
+            while self._made + self._t0 + 5_000_000 <= now:            # what arrived meanwhile
+                t = self._made + 5_000_000
+                ev = _events(self.rng, 20, self._made + 1000, 4_000_000)
+                self.sent.append(ev)
+                self._arrivals.append(RawChunk(self._encoder.encode(ev), t + self._t0, time.time_ns(),
+                                               len(self._arrivals) + 1))
+                self._made = t
+            if not self._arrivals:
+                time.sleep(min(timeout_s, 0.005))
+                return None
+            return self._arrivals.pop(0)
+
+    cam = Queued(rng)
+    bag = tmp_path / "bag"
+    counts = record(cam, bag, duration_s=0.5, log=lambda m: None)
+    # ~100 transfers of 20 events arrived in the 0.5 s (without the queue's drain: the first one
+    # only), ~140 by the time the stalled read returned (the later ones are not the recording's)
+    assert 20 * 80 <= counts["events"] <= 20 * 120, counts
+    from evdnerf_ros.io.event_files import read_event_file
+
+    assert read_event_file(bag).events.size == counts["events"]

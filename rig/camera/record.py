@@ -383,9 +383,9 @@ class CameraStream:
 
 
 def record(device, path, *, duration_s: float, storage: str = "mcap", log=print) -> dict:
-    """Start the (opened) ``device``, write ``duration_s`` wall seconds of its stream into the new
-    rosbag2 ``path``, stop it. Returns counts; an unplug mid-recording ends the bag validly with
-    everything received before it, then re-raises."""
+    """Start the (opened) ``device``, write ``duration_s`` wall seconds of its stream (every transfer
+    that arrived in them) into the new rosbag2 ``path``, stop it. Returns counts; an unplug
+    mid-recording ends the bag validly with everything received before it, then re-raises."""
     path = Path(path)
     disconnected = None
     with ViewRecorder(path, width=device.width, height=device.height, encoding=device.encoding,
@@ -394,6 +394,7 @@ def record(device, path, *, duration_s: float, storage: str = "mcap", log=print)
         device.start()
         try:
             end = time.monotonic() + float(duration_s)
+            end_ns = int(end * 1e9)
             while time.monotonic() < end:
                 try:
                     chunk = device.read(timeout_s=min(0.5, max(0.01, end - time.monotonic())))
@@ -402,6 +403,14 @@ def record(device, path, *, duration_s: float, storage: str = "mcap", log=print)
                     break
                 if chunk is not None:
                     writer.write(chunk)
+            else:
+                # transfers that arrived inside the window but still wait in the queue (the loop
+                # fell behind it: a stalled write) are the recording's too; stop() would drop them
+                try:
+                    while (chunk := device.read(timeout_s=0)) is not None and chunk.host_ns <= end_ns:
+                        writer.write(chunk)
+                except CameraDisconnected as exc:
+                    disconnected = exc
         finally:
             try:
                 device.stop()
