@@ -66,8 +66,10 @@ QUIET_NEAR_END_NS = 100_000_000
 #: With a trigger input but no edge seen yet, the clocks' estimate of START is trusted only once
 #: the stream has passed it by this much (ns): a rig without a trigger cable.
 TRIGGER_GRACE_NS = 1_000_000_000
-#: After DONE + settle, a stream still this far (s) from reaching it is a fault (the view is incomplete).
-STREAM_LAG_S = 15.0
+#: After DONE + settle, a stream short of it that has not advanced for this long (s) is a fault
+#: (the view is incomplete); one that advances is waited for, however late (a camera twin
+#: rendering slower than real time on a loaded machine streams every event, only late).
+STREAM_STALL_S = 15.0
 #: Before a view: how long a lagging stream may take to catch up before it is restarted.
 CATCH_UP_S = 3.0
 #: How often (s) a view's loop looks at the servo's reports when the stream brings nothing.
@@ -173,6 +175,24 @@ class ViewResult:
     host_span_ns: tuple[int, int] = (0, 0)
 
 
+class StreamWatch:
+    """Whether a camera's stream has stalled: its sensor time ``reached`` (None: nothing timed
+    yet) has not advanced for more than ``stall_s`` seconds since ``since_s`` or its last advance
+    (times on the host's monotonic clock, s). A late stream that advances never stalls."""
+
+    def __init__(self, since_s: float, stall_s: float | None = None):
+        self.last_s = float(since_s)
+        self.stall_s = STREAM_STALL_S if stall_s is None else float(stall_s)
+        self.reached: int | None = None
+
+    def stalled(self, now_s: float, reached: int | None) -> bool:
+        if reached is not None and (self.reached is None or reached > self.reached):
+            if self.reached is not None:        # the first value seen is where it stood, not an advance
+                self.last_s = max(self.last_s, now_s)
+            self.reached = reached
+        return now_s - self.last_s > self.stall_s
+
+
 class CaptureInterrupted(KeyboardInterrupt):
     """SIGINT / SIGTERM during a capture: the current view was closed and marked incomplete."""
 
@@ -196,6 +216,7 @@ def record_view(stream: CameraStream, servo, path: Path, *, K, D, pose, options:
         servo.drain_events()
         run_sent = None
         done_ns = None                      # DONE's sensor time, once the clocks place it
+        watch = None                        # the stream's progress after DONE + settle
         try:
             # a stream lagging real time (a camera twin rendering slower than real time) first
             # catches up with the present, so its lag never adds up over the views of a session
@@ -229,10 +250,12 @@ def record_view(stream: CameraStream, servo, path: Path, *, K, D, pose, options:
                     # quiet since (a sensor without activity sends nothing: there is nothing more to
                     # record; a stream still short of the motion's end is late, not quiet)
                     reached = camera.sensor_time_ns
-                    if now > done.host_recv_ns / 1e9 + options.settle_s + STREAM_LAG_S:
-                        raise CameraError(f"{camera.name}: the camera's stream is more than {STREAM_LAG_S:g} s behind "
-                                          f"the servo's DONE (it reached {_seconds(reached)}); check the USB "
-                                          "link and the machine's load")
+                    if watch is None:
+                        watch = StreamWatch(done.host_recv_ns / 1e9 + options.settle_s)
+                    if watch.stalled(now, reached):
+                        raise CameraError(f"{camera.name}: the camera's stream has not advanced for "
+                                          f"{STREAM_STALL_S:g} s, short of the servo's DONE (it reached "
+                                          f"{_seconds(reached)}); check the USB link and the machine's load")
                     last = stream.last_chunk_host_ns
                     quiet = last is None or now - last / 1e9 > QUIET_S
                     if done_ns is not None and reached is not None and (

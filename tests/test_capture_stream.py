@@ -465,3 +465,22 @@ def test_a_recording_holds_every_transfer_that_arrived_in_its_window(tmp_path, r
     from evdnerf_ros.io.event_files import read_event_file
 
     assert read_event_file(bag).events.size == counts["events"]
+
+
+def test_a_late_stream_that_advances_is_waited_for_one_that_stands_still_is_a_fault():
+    """After DONE + settle (here at 100 s on the host clock, stall limit 15 s): a stream creeping
+    forward (a twin rendering at a tenth of real time) is never a fault, however far behind;
+    one whose sensor time stands still for more than 15 s is, counted from DONE + settle or from
+    its last advance; nothing timed yet counts as standing still."""
+    from rig.capture import StreamWatch
+
+    creeping = StreamWatch(100.0, 15.0)
+    assert not any(creeping.stalled(100.0 + k, 5_000_000_000 + k * 100_000_000) for k in range(60))
+    still = StreamWatch(100.0, 15.0)
+    assert not still.stalled(100.0, 7_000_000_000) and not still.stalled(114.9, 7_000_000_000)
+    assert still.stalled(115.1, 7_000_000_000)
+    resumed = StreamWatch(100.0, 15.0)
+    assert not resumed.stalled(100.0, 1) and not resumed.stalled(110.0, 2)      # advanced at 110 s
+    assert not resumed.stalled(124.9, 2) and resumed.stalled(125.1, 2)
+    nothing = StreamWatch(100.0, 15.0)
+    assert not nothing.stalled(110.0, None) and nothing.stalled(115.1, None)
