@@ -328,8 +328,9 @@ class Device(abc.ABC):
     * ``_start_hardware()`` (after the transfers are queued) / ``_stop_hardware()``;
     * ``_reset_decoder()`` and ``_decode(data) -> (events, triggers)`` (streaming decoder
       carrying state across chunks, times in int64 sensor ns unwrapped from the sensor's
-      zero); ``_sample_words()`` -> a one-event sample the decoder is warmed with; optional ``_sensor_time_ns()`` -> the newest sensor time the decoder has seen
-      (time words included), used for the clock samples; optional ``_decoder_state()`` and
+      zero); ``_sample_words()`` -> a one-event sample the decoder is warmed with
+      (:meth:`warm_up`); optional ``_sensor_time_ns()`` -> the newest sensor time the decoder
+      has seen (time words included), used for the clock samples; optional ``_decoder_state()`` and
       ``resume_words(chunk)`` where a recording cut from a running stream needs its decoder's
       state first (EVT 3.0);
     * optional ``THRESHOLD_MODEL`` / ``contrast_thresholds(biases)``: the model's bias ->
