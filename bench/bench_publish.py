@@ -27,7 +27,7 @@ Writes ``publish.json`` and ``publish.png`` into ``--out``.
   parameters: leave-out, static reuse, static world, per-pixel sampling, min step, chunk,
   baking, tolerance) against the simulator's events along the same path (event-image PSNR, zero
   floor, true render, counts per polarity, first-event timing) and its RTF; RTF against
-  resolution for the static view. ``--backbone hinge``: the same with a ``hinge`` run (stored as
+  resolution for the static view and the orbit. ``--backbone hinge``: the same with a ``hinge`` run (stored as
   ``published_vs_true_hinge``, drawn beside the planes run's).
 * **DDS throughput**: a writer process and a reader process on loopback (Cyclone DDS,
   localhost only), EventPacket messages of 64 KiB and 1 MiB, reliable keep-last 64; the
@@ -195,8 +195,9 @@ LEVERS = {"plain (every ray, every sample)": {"leave_out": False, "reuse_static"
 #: one) or meaningless there (the static part's tolerance levers with a moving camera, the
 #: motion guard with a static one)
 SKIP = {"static": ("static world field", "whole images", "motion guard"), "orbit": ("static world flat", "tolerance")}
-#: levers of the RTF-against-resolution sweep (static camera)
-RESOLUTION_LEVERS = ("static reuse (default)", "baked 64")
+#: levers of the RTF-against-resolution sweep, per path (for the orbit, "static reuse (default)"
+#: is the default: a moving camera has nothing to reuse)
+RESOLUTION_LEVERS = {"static": ("static reuse (default)", "baked 64"), "orbit": ("static reuse (default)", "baked 64")}
 
 
 def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: float = 0.0,
@@ -233,13 +234,19 @@ def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: 
             rows.append({"lever": name, **{k: r[k] for k in ("published", "zero_floor", "true_render",
                          "margin_closed", "counts", "first_events", "publisher", "true_publisher")}})
         out["levers"][path] = rows
-    for size in ((32, 32), (64, 64)) if quick else ((32, 32), (64, 64), (128, 128)):
-        for name in RESOLUTION_LEVERS:
-            r = one("static", LEVERS[name], None, resolution=size)
-            r.pop("reference")
-            out["resolution"].append({"width": size[0], "height": size[1], "lever": name,
-                                      "rtf": r["publisher"]["rtf"], "psnr": r["published"]["psnr"],
-                                      "zero_floor": r["zero_floor"]["psnr"], "true_render": r["true_render"]["psnr"]})
+    for path, names in RESOLUTION_LEVERS.items():
+        for size in ((32, 32), (64, 64)) if quick else ((32, 32), (64, 64), (128, 128)):
+            ref = None
+            for name in names:
+                if levers and name not in levers:
+                    continue
+                r = one(path, LEVERS[name], ref, resolution=size)
+                ref = r.pop("reference")
+                out["resolution"].append({"path": path, "width": size[0], "height": size[1], "lever": name,
+                                          "rtf": r["publisher"]["rtf"], "source_s": r["publisher"]["source_s"],
+                                          "psnr": r["published"]["psnr"], "zero_floor": r["zero_floor"]["psnr"],
+                                          "true_render": r["true_render"]["psnr"],
+                                          "events_on": r["counts"]["published_on"]})
     return out
 
 
@@ -437,13 +444,15 @@ def plot(result, path):
         ax[4].set_ylabel("events PSNR vs true events (dB)")
         ax[4].set_title("published vs true (dashed: all-zero floor, dotted: true render)")
         ax[4].legend(fontsize=7)
-        for lever, mk in zip(dict.fromkeys(r["lever"] for r in pv["resolution"]), ("o-", "s--", "^-.", "d:")):
-            rows = [r for r in pv["resolution"] if r["lever"] == lever]
-            ax[5].plot([f"{r['width']}x{r['height']}" for r in rows], [r["rtf"] for r in rows], mk, label=lever)
+        curves = dict.fromkeys((r.get("path", "static"), r["lever"]) for r in pv["resolution"])
+        for (path_name, lever), mk in zip(curves, ("o-", "s--", "^-.", "d:")):
+            rows = [r for r in pv["resolution"] if (r.get("path", "static"), r["lever"]) == (path_name, lever)]
+            ax[5].plot([f"{r['width']}x{r['height']}" for r in rows], [r["rtf"] for r in rows], mk,
+                       label=f"{path_name}: {lever}")
         ax[5].axhline(0.5, color="k", ls=":", lw=1)
         ax[5].set_yscale("log")
         ax[5].set_ylabel("real-time factor")
-        ax[5].set_title("trained field, static novel view: RTF vs resolution")
+        ax[5].set_title("trained field, novel views: RTF vs resolution")
         ax[5].legend(fontsize=7)
     rows = result.get("rtf_vs_resolution", [])
     if rows:

@@ -73,10 +73,12 @@ class BakedField(DynamicField):
 
     @classmethod
     @torch.no_grad()
-    def bake(cls, field, *, resolution: int = 64, times: int = 0, dynamic=None, chunk: int = 65536,
-             device=None) -> "BakedField":
+    def bake(cls, field, *, resolution: int = 64, times: int = 0, dynamic=None, keep_static: bool = True,
+             chunk: int = 65536, device=None) -> "BakedField":
         """Bake ``field`` (module docstring). ``times`` 0: four frames per time texel of a
-        ``planes`` field (``4 (time_resolution - 1) + 1``), else 65."""
+        ``planes`` field (``4 (time_resolution - 1) + 1``), else 65. ``keep_static`` False leaves the
+        static grid out (a flat static world never reads it; ~30 % of the bake): ``decode_static``
+        then refuses."""
         from ..device import module_device
 
         r = int(resolution)
@@ -100,11 +102,13 @@ class BakedField(DynamicField):
                 fhi = flo + 2.0 / (r - 1)      # nothing moves: a token frame grid (never looked up)
         step = 2.0 / (r - 1)
         fcounts = [max(2, int(math.ceil((fhi[i] - flo[i]) / step - 1e-9)) + 1) for i in range(3)]
-        static = torch.empty(2, r ** 3, device=dev)
-        xs = _vertices(lo, hi, (r, r, r), dev)
-        for s in range(0, xs.shape[0], chunk):
-            dens, grey = field.decode_static(field.space_features(xs[s:s + chunk]))
-            static[0, s:s + chunk], static[1, s:s + chunk] = dens.float(), grey.float()
+        rs = r if keep_static else 1                 # left out: one token vertex, never read
+        static = torch.zeros(2, rs ** 3, device=dev)
+        if rs > 1:
+            xs = _vertices(lo, hi, (rs, rs, rs), dev)
+            for s in range(0, xs.shape[0], chunk):
+                dens, grey = field.decode_static(field.space_features(xs[s:s + chunk]))
+                static[0, s:s + chunk], static[1, s:s + chunk] = dens.float(), grey.float()
         xf = _vertices(flo, fhi, fcounts, dev)
         frames = torch.empty(tb, 2, xf.shape[0], device=dev)
         for s in range(0, xf.shape[0], chunk):
@@ -113,7 +117,7 @@ class BakedField(DynamicField):
             cols = [torch.full((xc.shape[0], 1), k / (tb - 1), device=dev) for k in range(tb)]
             for k, (dens, grey) in enumerate(field.evaluate_times(xc, cols, dyn)):
                 frames[k, 0, s:s + chunk], frames[k, 1, s:s + chunk] = dens.float(), grey.float()
-        out = cls(static.reshape(2, r, r, r), frames.reshape(tb, 2, *fcounts), flo, fhi)
+        out = cls(static.reshape(2, rs, rs, rs), frames.reshape(tb, 2, *fcounts), flo, fhi)
         if getattr(field, "background_map", None) is not None:
             out.background_map = field.background_map     # the same backdrop, not baked
         return out.to(dev)
@@ -123,6 +127,9 @@ class BakedField(DynamicField):
         return x.to(torch.float32)
 
     def decode_static(self, features):
+        if self.static.shape[1] < 2:
+            raise RuntimeError("this baked field was baked without its static grid (for a flat static world); "
+                               "bake it with keep_static=True to render the static world")
         v = _lookup(self.static, features, self.box_lo, self.box_hi)
         return v[:, 0], v[:, 1]
 

@@ -136,6 +136,7 @@ class PublishReport:
     samples_evaluated: int = 0   # trained field: field evaluations done (static-camera reuse, baking)
     interrupted: bool = False
     rtf: float = 0.0
+    source_seconds: float = 0.0  # loading the scene or run before publishing (a trained run: baking included)
     topics: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -166,7 +167,9 @@ class EventPublisher(Node):
         if p["encoding"] in ("evt3", "evt2") and max(self.camera.width, self.camera.height) > 2048:
             raise InputError(f"encoding {p['encoding']} carries at most 2048x2048 pixels; use encoding mono or array")
         self.t0, self.t1, self.track, self.T_robot_cam = self._trajectory()
+        wall0 = time.perf_counter()
         self.source = self._source()
+        source_seconds = time.perf_counter() - wall0
         from ..sim.generator import EventGenerator
 
         self.generator = EventGenerator(
@@ -189,7 +192,7 @@ class EventPublisher(Node):
         self.params.listeners.append(self._live.update)
         if p["bag"]:
             self.record_to(p["bag"], storage=p["bag_storage"])
-        self.report = PublishReport()
+        self.report = PublishReport(source_seconds=source_seconds)
 
     # ----- inputs
     def _camera(self):

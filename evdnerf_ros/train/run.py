@@ -218,7 +218,7 @@ class TrainedRun:
             from ..field.baked import BakedField
 
             field = BakedField.bake(field, resolution=int(bake_resolution), times=int(bake_times),
-                                    dynamic=self.dynamic, device=dev)
+                                    dynamic=self.dynamic, keep_static=static_world != "flat", device=dev)
         return FieldRenderer(field, camera, self.box, duration_ns=duration_ns,
                              t_origin_ns=t_origin_ns, n_samples=cfg.n_samples, near=cfg.near,
                              far=cfg.far, background=cfg.background, occupancy=self.occupancy,
