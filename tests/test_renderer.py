@@ -325,3 +325,37 @@ def test_a_flat_world_bakes_no_static_grid():
     assert np.ptp(a) > 0.05
     with pytest.raises(RuntimeError, match="without its static grid"):
         lean.decode_static(torch.zeros(2, 3))
+
+
+def test_the_baked_marcher_on_extreme_rays_and_densities():
+    """The compiled marcher against the tensor path where rounding and overflow bite: a camera
+    inside the box, rays parallel to the box's faces (zero direction components), a huge density
+    (opacity 1 at the first sample: no NaN, no overflow) and no density at all (the backdrop)."""
+    from evdnerf_ros.field.baked import BakedField
+    from evdnerf_ros.field.dynamic_region import DynamicRegion
+    from evdnerf_ros.field.renderer import FieldRenderer
+
+    mask = torch.zeros((8, 8, 8), dtype=torch.bool)
+    mask[2:6, 2:6, 2:6] = True
+    region = DynamicRegion(mask)
+    box = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
+    inside = np.eye(4)
+    inside[:3, 3] = [0.05, 0.02, -0.9]                  # looking along +z from inside the box
+    cam = PinholeCamera(5, 5, 4.0, 4.0, 2.0, 2.0)      # the centre pixel's ray is exactly (0, 0, 1)
+    times = np.array([0, 500_000_000], np.int64)
+    poses = np.stack([inside, look_at([0.0, -3.0, 0.0], [0.0, 0.0, 0.0])])
+    which, pixels = np.repeat([0, 1], 25), np.tile(np.arange(25), 2)
+    base = BakedField.bake(_dense_planes_field(6), resolution=9, times=3, dynamic=region)
+    for scale in (1.0, 1e30, 0.0):
+        field = BakedField(base.static * torch.tensor([scale, 1.0])[:, None, None, None],
+                           base.frames * torch.tensor([scale, 1.0])[None, :, None, None, None],
+                           base.frame_lo, base.frame_hi)
+        for world in ("field", "flat"):
+            r = FieldRenderer(field, cam, box, duration_ns=10 ** 9, n_samples=16, dynamic=region, static_world=world,
+                              background=0.25)
+            got = r.render_pixels(poses, times, which, pixels)
+            want = np.concatenate([r.render(poses[k], int(times[k])).ravel() for k in range(2)])
+            assert np.all(np.isfinite(got)), (scale, world)
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-5, err_msg=f"density x{scale:g}, {world}")
+            if scale == 0.0:
+                assert np.all(got == np.float32(0.25) if world == "field" else got == np.float32(r.flat_grey))
