@@ -150,10 +150,9 @@ def _march(poses, t, which, cam_dirs, backdrop, box_lo, box_hi, near, far, n_sam
 def march_baked(field, poses, times, which, cam_dirs, backdrop, *, box, near: float, far: float, n_samples: int,
                 cells_box, occupancy, dynamic, flat: bool, threads: int = 1):
     """(values (M,) float64 linear intensity, rays that hit the box, rays with a sample evaluated,
-    samples evaluated) of M rays through the
-    baked ``field`` inside ``box`` (module docstring): ray i leaves pose ``poses[which[i]]`` ((K, 4, 4)
-    T_world_cam) along camera-frame direction ``cam_dirs[i]`` at normalised time ``times[which[i]]``
-    and sees ``backdrop[i]`` beyond the box. ``cells_box``: (2, 3) world box of the cells a ray must
+    samples evaluated) of M rays through the baked ``field`` inside ``box`` (module docstring): ray i
+    leaves pose ``poses[which[i]]`` ((K, 4, 4) T_world_cam) along camera-frame direction
+    ``cam_dirs[i]`` at normalised time ``times[which[i]]`` and sees ``backdrop[i]`` beyond the box. ``cells_box``: (2, 3) world box of the cells a ray must
     reach (None: all of the box); ``occupancy`` / ``dynamic``: boolean (X, Y, Z) grids over the box
     or None; ``flat``: nothing outside ``dynamic``, whose density fades at its boundary."""
     f64 = np.float64
