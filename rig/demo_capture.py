@@ -17,7 +17,10 @@ the session layout's one writer) with that truth, in the keys a simulated sessio
   twin's record of where it put the firmware's trigger pulse (the motion's START, scene time
   ``start_ns_scene``) on its sensor clock, and the view's sensor-to-bag time offset; a view
   whose edge the twin placed late (the machine fell behind real time) gets none; and
-  ``ground_truth.sensor_zero_scene_ns``, the scene time of the twin's sensor zero in that view;
+  ``ground_truth.sensor_zero_scene_ns``, the scene time of the twin's sensor zero in that view,
+  and ``ground_truth.stale_renders``, the chunks of that view's stream the twin rendered with
+  stale joint angles (the harness fell behind real time: then its events are not the scene's,
+  and convert claims no true scene for the set);
 * ``rig.virtual``: the twin, scene size, render rate, ``frame_ns`` (its renders lie on the grid
   of sensor-time multiples of this, joined linearly in log by its event generator) and
   ``scene_window`` (x y w h: where the scene sits on the sensor, the window to convert with
@@ -117,7 +120,8 @@ class VirtualRigSource:
             if late_edges or vr.source.late_renders:
                 log(f"virtual rig: {late_edges} trigger edges placed late, {vr.source.late_renders} chunks rendered "
                     "with stale joint angles (the machine fell behind real time)")
-            return add_truth(out_dir, self.scene, vr.profile, vr.trigger_log, virtual, log=log)
+            return add_truth(out_dir, self.scene, vr.profile, vr.trigger_log, virtual, log=log,
+                             late_by_stream=dict(vr.source.late_by_stream))
 
 
 def _follow(proc, log, timeout_s: float = CAPTURE_TIMEOUT_S) -> list[str]:
@@ -142,9 +146,12 @@ def _follow(proc, log, timeout_s: float = CAPTURE_TIMEOUT_S) -> list[str]:
     return lines
 
 
-def add_truth(out_dir, scene_ref: str, profile, trigger_log, virtual: dict, *, log=print) -> dict:
+def add_truth(out_dir, scene_ref: str, profile, trigger_log, virtual: dict, *, log=print,
+              late_by_stream: dict | None = None) -> dict:
     """Rewrite ``out_dir``'s session.yaml with what the virtual rig knows (module docstring);
-    returns the document written."""
+    returns the document written. ``late_by_stream``: the camera twin's chunks rendered with stale
+    joint angles per stream (``RigDrivenSource.late_by_stream``), each view's recorded as its
+    ``ground_truth.stale_renders``."""
     from evdnerf_ros.io.rosbag2 import read_events
     from evdnerf_ros.session.layout import load_session
     from evdnerf_ros.sim.joint import joint_record
@@ -178,7 +185,8 @@ def add_truth(out_dir, scene_ref: str, profile, trigger_log, virtual: dict, *, l
         gt = None
         if record is not None:
             gt = {"trigger_sensor_ns": int(record.sensor_ns), "trigger_on_time": bool(record.on_time),
-                  "clock_offset_ns": None, "sensor_zero_scene_ns": None}
+                  "clock_offset_ns": None, "sensor_zero_scene_ns": None,
+                  "stale_renders": int((late_by_stream or {}).get(record.stream, 0))}
             if record.on_time:
                 # the view clock = the bag's time offset + sensor time; the edge is scene time
                 # start_ns_scene, so the clock reads start_ns_scene + offset there

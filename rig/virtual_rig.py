@@ -51,6 +51,7 @@ class TriggerRecord:
     host_ns: int            # when the firmware raised D8 (host monotonic clock)
     sensor_ns: int | None   # where the twin put the rising edge (None: not streaming / input off)
     on_time: bool           # the edge landed at its true sensor time
+    stream: int = 0         # the camera twin's stream then (``RigDrivenSource.stream``: one per recorded view)
 
 
 #: Reply timeout (s) of the servo client talking to the simulated board (rig.servo; real boards: 1 s).
@@ -143,7 +144,7 @@ class VirtualRig:
         at_us = (host_ns - zero) // 1000
         got = twin.pulse_trigger(width_us=1000, at_us=at_us) if at_us >= 0 else None
         self.trigger_log.append(TriggerRecord(host_ns, None if got is None else int(got[0]),
-                                              got is not None and got[0] == 1000 * at_us))
+                                              got is not None and got[0] == 1000 * at_us, self.source.stream))
 
     # --- what the capture node needs ------------------------------------------------------------
     @property

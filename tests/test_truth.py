@@ -163,3 +163,18 @@ def test_convert_records_the_twins_render_grid():
     # a simulated session renders every time it is asked
     assert "render_grid" not in _truth_record({"kind": "simulation", "scene_ref": "fork"}, views, None,
                                               frame_ns=8_000_000)[0]
+
+
+def test_no_true_scene_where_the_twin_rendered_stale_joint_angles():
+    """A view whose stream the virtual rig's camera twin rendered with stale joint angles (the
+    harness fell behind real time) does not show the scene: no true scene for the set, saying which
+    view and why; zero stale renders change nothing."""
+    from evdnerf_ros.session.convert import _truth_record
+
+    source = {"kind": "capture", "rig": "virtual", "scene_ref": "fork", "supersample": 1}
+    views = {"a": {"offset_ns": 500, "ground_truth_clock_offset_ns": 200, "ground_truth_stale_renders": 0},
+             "b": {"offset_ns": 900, "ground_truth_clock_offset_ns": 100, "ground_truth_stale_renders": 0}}
+    assert _truth_record(source, views, None)[0] is not None
+    views["b"]["ground_truth_stale_renders"] = 3
+    record, why = _truth_record(source, views, None)
+    assert record is None and "view(s) b (3)" in why and "stale joint angles" in why

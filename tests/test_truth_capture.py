@@ -152,3 +152,37 @@ def test_a_real_capture_gives_no_reference(sessions, tmp_path):
         assert "truth" not in ts.provenance and "truth_note" not in ts.provenance
         truth, why = TrueScene.of(ts)
     assert truth is None and "not converted from a simulated session" in why
+
+
+def test_the_rig_source_counts_stale_renders_per_stream():
+    """When the virtual rig's pin harness falls behind (the feed knows the joints only up to an
+    earlier time) the camera twin's source renders with the last known angles and counts the
+    chunk late, per stream (one per recorded view), so that only that view's truth is withdrawn."""
+    import time
+    from types import SimpleNamespace
+
+    from rig.camera.virtual.rig_source import RigDrivenSource
+
+    class StalledTrack:                        # a joint the harness never reports beyond its start
+        last_ns = None
+
+        def deg(self, t):
+            return np.full(np.shape(t), 90.0)
+
+    src = RigDrivenSource("fork", 16, 12, SimpleNamespace(servo=StalledTrack(), turntable=StalledTrack()),
+                          rate_hz=125.0, max_wait_s=0.02)
+    try:
+        src.zero_host_ns = lambda: time.monotonic_ns() - 10**9
+        streams = []
+        for _ in range(2):
+            src.restart()
+            streams.append(src.stream)
+            deadline = time.monotonic() + 20
+            while src.late_by_stream.get(streams[-1], 0) < 2 and time.monotonic() < deadline:
+                src.ready_ns(50_000_000)
+                time.sleep(0.01)
+        assert streams[0] != streams[1]
+        assert all(src.late_by_stream.get(s, 0) >= 2 for s in streams), src.late_by_stream
+        assert sum(src.late_by_stream.values()) == src.late_renders
+    finally:
+        src.close()

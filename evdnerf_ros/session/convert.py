@@ -589,6 +589,7 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
                     "bag": str(Path(v.bag).resolve()), "split": v.split, "offset_ns": plan.offset_ns,
                     "sync": v.sync, "ground_truth_clock_offset_ns": (v.ground_truth or {}).get("clock_offset_ns"),
                     "ground_truth_sensor_zero_scene_ns": (v.ground_truth or {}).get("sensor_zero_scene_ns"),
+                    "ground_truth_stale_renders": (v.ground_truth or {}).get("stale_renders"),
                     "moving_camera": plan.moving,
                     **{k: plan.stats[k] for k in ("events_decoded", "dropped_odd_edge", "outside_crop")},
                 }
@@ -823,6 +824,13 @@ def _truth_record(source: dict | None, views: dict, options: dict | None, *,
         which = f"view{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}"
         return None, (f"no true scene: session.yaml has no ground_truth.clock_offset_ns for {which}, so the "
                       f"scene's time there is unknown ({fix})")
+    stale = {name: int(v["ground_truth_stale_renders"]) for name, v in views.items()
+             if v.get("ground_truth_stale_renders")}
+    if stale:
+        which = ", ".join(f"{name} ({n})" for name, n in stale.items())
+        return None, (f"no true scene: the virtual rig's camera twin rendered chunks of view(s) {which} with stale joint "
+                      "angles (the harness fell behind real time), so their events are not the scene's: capture again "
+                      "on a less loaded machine")
     origin = {name: int(v["offset_ns"]) - int(v["ground_truth_clock_offset_ns"]) for name, v in views.items()}
     record = {"scene": str(source["scene_ref"]), "supersample": int(supersample),
               "scene_time_at_origin_ns": origin}

@@ -275,6 +275,8 @@ def _check_view(root: Path, v, where: Where, seen: set) -> ViewRecord:
     if gt is not None:
         for k in ("clock_offset_ns", "device_offset_ns", "sensor_zero_scene_ns"):
             _int_ns(gt, k, where / "ground_truth")
+        # chunks the virtual rig's camera twin rendered with stale joint angles (rig.camera.virtual)
+        number_in(gt, "stale_renders", where / "ground_truth", required=False, integer=True, low=0, high=1e12)
     sync = mapping(v.get("sync"), where / "sync", optional=True)
     if sync is not None:
         _int_ns(sync, "offset_ns", where / "sync")

@@ -19,7 +19,9 @@ what the twin has streamed (``ready_ns``): the twin streams only what is rendere
 that renders slower than real time makes the stream lag, never the camera's control requests wait.
 Frames are rendered only once the feed knows the joints beyond their time (the firmware's frames
 come every 20 ms); if the harness falls behind for longer than ``max_wait_s``, the last known
-angles are held and the chunk is counted in ``late_renders`` (never silent).
+angles are held and the chunk is counted in ``late_renders`` and, per stream (each sensor-time
+zero the twin starts: one per recorded view), in ``late_by_stream`` (never silent: that view's
+events are not the scene's, so its true-scene reference is not claimed).
 """
 
 from __future__ import annotations
@@ -96,6 +98,7 @@ class RigDrivenSource(EventSource):
         self.zero_host_ns = lambda: 0          # set by the rig: the twin's host time of sensor 0
         self.renders = 0
         self.late_renders = 0
+        self.late_by_stream: dict[int, int] = {}     # stream (``stream``) -> its late renders
         self.error: BaseException | None = None      # why the renderer thread stopped, if it did
         self._cv = threading.Condition()
         self._epoch = 0
@@ -103,6 +106,11 @@ class RigDrivenSource(EventSource):
         self.restart()
         self._thread = threading.Thread(target=self._run, name="rig-source", daemon=True)
         self._thread.start()
+
+    @property
+    def stream(self) -> int:
+        """The stream now generated: a new number at every ``restart`` (the twin's sensor-time zero)."""
+        return self._epoch
 
     # --- EventSource (called by the twin, under its lock) -------------------------------------
     @property
@@ -168,8 +176,9 @@ class RigDrivenSource(EventSource):
     def _angles(self, host_ns: int) -> tuple[float, float]:
         return float(self.feed.servo.deg(int(host_ns))), float(self.feed.turntable.deg(int(host_ns)))
 
-    def _wait_for_joints(self, host_ns: int) -> None:
-        """Until the feed knows both joints at or beyond ``host_ns`` (frames come every 20 ms)."""
+    def _wait_for_joints(self, host_ns: int, stream: int) -> None:
+        """Until the feed knows both joints at or beyond ``host_ns`` (frames come every 20 ms); a
+        chunk of ``stream`` that waited ``max_wait_s`` in vain is counted late."""
         deadline = time.monotonic() + self.max_wait_s
         while not self._stop:
             s, t = self.feed.servo.last_ns, self.feed.turntable.last_ns
@@ -177,6 +186,7 @@ class RigDrivenSource(EventSource):
                 return
             if time.monotonic() >= deadline:
                 self.late_renders += 1
+                self.late_by_stream[stream] = self.late_by_stream.get(stream, 0) + 1
                 return
             time.sleep(0.001)
 
@@ -212,7 +222,7 @@ class RigDrivenSource(EventSource):
                 continue
             th = self.thresholds
             if gen is None:
-                self._wait_for_joints(zero)
+                self._wait_for_joints(zero, epoch)
                 gen = EventGenerator(self.width, self.height, c_pos=th[0], c_neg=th[1])
                 gen.reset(self.render_at(zero), 0)
                 rendered = self._angles(zero)
@@ -220,7 +230,7 @@ class RigDrivenSource(EventSource):
                 last = gen.last_log()
                 gen = EventGenerator(self.width, self.height, c_pos=th[0], c_neg=th[1])
                 gen.reset_log(last, a)
-            self._wait_for_joints(zero + b)
+            self._wait_for_joints(zero + b, epoch)
             ev = None
             if self._moving(zero + a, zero + b, rendered):
                 ev, _ = simulate_renderer(lambda t: self.render_at(zero + t), a, b, gen,
