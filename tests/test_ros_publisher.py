@@ -397,3 +397,19 @@ def test_a_trained_run_without_trajectory_orbits_its_training_views(tmp_path):
     assert (got["width"], got["height"]) == (14, 10) and got["K"][0, 0] == 12.0
     with pytest.raises(EvdnerfError, match="records no ring .* give a trajectory"):
         publish(tmp_path, name="c", run_dir=str(tmp_path / "old"), **{"camera.width": 8, "camera.height": 8})
+
+
+def test_a_paced_run_that_falls_behind_real_time_says_so_once_with_the_lever(capsys, monkeypatch):
+    """realtime_factor > 0 is a schedule: a run more than LATE_WARN_S behind it warns once, naming the
+    lever that buys speed for its error; an unpaced run (0) has no schedule to miss."""
+    from evdnerf_ros.nodes import event_publisher
+
+    monkeypatch.setattr(event_publisher, "LATE_WARN_S", 0.05)
+    slow = {**SMALL, "render_rate_hz": 20000.0, "scene_time_offset": 0.15, "duration": 0.01, "chunk": 0.001,
+            "realtime_factor": 400.0}
+    rep = run_node((), overrides=slow, dds=False)
+    err = capsys.readouterr().err
+    assert rep.fell_behind and rep.wall_seconds > 0.05 + 0.01 / 400
+    assert err.count("falling behind real time x400") == 1 and "camera.width" in err
+    rep = run_node((), overrides={**slow, "realtime_factor": 0.0}, dds=False)
+    assert not rep.fell_behind and "falling behind" not in capsys.readouterr().err

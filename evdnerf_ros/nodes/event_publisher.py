@@ -119,6 +119,10 @@ PARAMETERS = [
 ]
 
 
+#: A paced run this far behind its schedule (s, and at least two chunks) says so, once, with the lever to pull.
+LATE_WARN_S = 0.5
+
+
 @dataclass
 class PublishReport:
     messages: int = 0
@@ -135,6 +139,7 @@ class PublishReport:
     samples_total: int = 0       # trained field: field evaluations of a full render of every traced ray per call
     samples_evaluated: int = 0   # trained field: field evaluations done (static-camera reuse, baking)
     interrupted: bool = False
+    fell_behind: bool = False    # a paced run (realtime_factor > 0) fell LATE_WARN_S behind its schedule
     rtf: float = 0.0
     source_seconds: float = 0.0  # loading the scene or run before publishing (a trained run: baking included)
     topics: dict = field(default_factory=dict)
@@ -314,6 +319,16 @@ class EventPublisher(Node):
         t_scene = times - self.t0 + int(round(self.params["scene_time_offset"] * NS))
         return self.source.render_pixels(poses, t_scene, which, pixels)
 
+    def _speed_hint(self, moving: bool) -> str:
+        """The lever that buys this run the most speed for its error (bench/bench_publish.py)."""
+        p = self.params
+        if p["run_dir"] and not p["bake_resolution"]:
+            return ("bake_resolution:=64 plays the trained field back from a grid, 4x faster on the fork's orbit at 64x64 "
+                    "for a few % fewer events (its error: the publish benchmark)")
+        if p["adaptive"] and p["min_step_ns"] < 1_000_000:
+            return "a larger min_step_ns renders fewer times, at the cost of the finest event timing"
+        return "a smaller camera (camera.width / camera.height) or a lower realtime_factor"
+
     # ----- run
     def _camera_info(self, stamp_ns: int) -> None:
         from ..io.messages import camera_info
@@ -443,7 +458,12 @@ class EventPublisher(Node):
             rep.pixels_rendered += st.pixels_rendered
             rep.frames_fed += st.frames_fed
             if factor > 0:
-                self.sleep(wall0 + (tb - self.t0) / NS / factor - time.perf_counter())
+                ahead = wall0 + (tb - self.t0) / NS / factor - time.perf_counter()
+                if -ahead > max(LATE_WARN_S, 2 * chunk / NS / factor) and not rep.fell_behind:
+                    rep.fell_behind = True
+                    self.logger.warn(f"falling behind real time x{factor:g} by {-ahead:.2f} s at t = "
+                                     f"{(tb - self.t0) / NS:.3f} s: {self._speed_hint(moving)}")
+                self.sleep(ahead)
             if on_events is not None:
                 on_events(events)
             rep.messages += encoder.write_events(self.events_pub.topic, events, width=self.camera.width,
