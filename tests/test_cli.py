@@ -165,6 +165,11 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
                    for who in ("field", "floor", "true_scene"))
         assert set(scores["margin_closed"]) == {"continuous", "quantized", "pooled"}
     assert (out / "run" / "eval_events.png").exists() and (out / "report" / "report.png").exists()
+    pub = summary["published"]                 # the trained run published along its training ring
+    from evdnerf_ros.io.rosbag2 import read_events
+
+    events = read_events(out / pub["bag"], "/event_publisher/events").events
+    assert pub["events"] == events.size > 0 and pub["sim_seconds"] > 0.5 and pub["rtf"] > 0
     assert main(["demo", "-o", str(out)]) == 2          # refuses to overwrite
     assert "already exists" in capsys.readouterr().err
 

@@ -147,31 +147,44 @@ def _march(poses, t, which, cam_dirs, backdrop, box_lo, box_hi, near, far, n_sam
         out[r] = grey + (1.0 - acc) * backdrop[r]
 
 
-def march_baked(field, poses, times, which, cam_dirs, backdrop, *, box, near: float, far: float, n_samples: int,
-                cells_box, occupancy, dynamic, flat: bool, threads: int = 1):
-    """(values (M,) float64 linear intensity, rays that hit the box, rays with a sample evaluated,
-    samples evaluated) of M rays through the baked ``field`` inside ``box`` (module docstring): ray i
-    leaves pose ``poses[which[i]]`` ((K, 4, 4) T_world_cam) along camera-frame direction
-    ``cam_dirs[i]`` at normalised time ``times[which[i]]`` and sees ``backdrop[i]`` beyond the box. ``cells_box``: (2, 3) world box of the cells a ray must
-    reach (None: all of the box); ``occupancy`` / ``dynamic``: boolean (X, Y, Z) grids over the box
-    or None; ``flat``: nothing outside ``dynamic``, whose density fades at its boundary."""
-    f64 = np.float64
-    box = np.asarray(box, f64).reshape(2, 3)
-    cells = box if cells_box is None else np.asarray(cells_box, f64).reshape(2, 3)
-    occ = np.zeros((1, 1, 1), np.bool_) if occupancy is None else np.ascontiguousarray(occupancy, np.bool_)
-    # no region: every sample is dynamic (``FieldRenderer._classify``)
-    dyn = np.ones((1, 1, 1), np.bool_) if dynamic is None else np.ascontiguousarray(dynamic, np.bool_)
-    fade = (dyn.astype(np.float32)[None] if flat else np.zeros((1, 1, 1, 1), np.float32))
-    m = int(np.asarray(which).shape[0])
-    out, hits, evaluated = np.empty(m, f64), np.empty(m, np.bool_), np.empty(m, np.int64)
-    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
-    _march(np.ascontiguousarray(poses, f64), np.ascontiguousarray(times, f64), np.ascontiguousarray(which, np.int64),
-           np.ascontiguousarray(cam_dirs, f64), np.ascontiguousarray(np.broadcast_to(np.asarray(backdrop, f64), (m,))),
-           box[0], box[1], float(near), float(far), int(n_samples), cells[0], cells[1], occ, occupancy is not None,
-           dyn, fade, bool(flat), field.static.detach().cpu().numpy(), field.frames.detach().cpu().numpy(),
-           field.frame_lo.detach().cpu().numpy().astype(f64), field.frame_hi.detach().cpu().numpy().astype(f64),
-           out, hits, evaluated)
-    return out, int(hits.sum()), int(np.count_nonzero(evaluated)), int(evaluated.sum())
+class BakedMarcher:
+    """The compiled marcher of one renderer's set-up (module docstring): the baked ``field`` inside
+    ``box`` with ``n_samples`` bins per ray between ``near`` and ``far``; ``cells_box``: (2, 3) world
+    box of the cells a ray must reach (None: all of the box); ``occupancy`` / ``dynamic``: boolean
+    (X, Y, Z) grids over the box or None; ``flat``: nothing outside ``dynamic``, whose density fades at
+    its boundary. Its arrays are made once; each call marches a batch of rays."""
+
+    def __init__(self, field, *, box, near: float, far: float, n_samples: int, cells_box, occupancy, dynamic,
+                 flat: bool):
+        f64 = np.float64
+        self.box = np.asarray(box, f64).reshape(2, 3)
+        self.cells = self.box if cells_box is None else np.asarray(cells_box, f64).reshape(2, 3)
+        self.near, self.far, self.n_samples, self.flat = float(near), float(far), int(n_samples), bool(flat)
+        self.use_occ = occupancy is not None
+        self.occ = np.zeros((1, 1, 1), np.bool_) if occupancy is None else np.ascontiguousarray(occupancy, np.bool_)
+        # no region: every sample is dynamic (``FieldRenderer._classify``)
+        self.dyn = np.ones((1, 1, 1), np.bool_) if dynamic is None else np.ascontiguousarray(dynamic, np.bool_)
+        self.fade = self.dyn.astype(np.float32)[None] if flat else np.zeros((1, 1, 1, 1), np.float32)
+        self.static = field.static.detach().cpu().numpy()
+        self.frames = field.frames.detach().cpu().numpy()
+        self.frame_lo = field.frame_lo.detach().cpu().numpy().astype(f64)
+        self.frame_hi = field.frame_hi.detach().cpu().numpy().astype(f64)
+
+    def __call__(self, poses, times, which, cam_dirs, backdrop, *, threads: int = 1):
+        """(values (M,) float64 linear intensity, rays that hit the box, rays with a sample
+        evaluated, samples evaluated) of M rays: ray i leaves pose ``poses[which[i]]`` ((K, 4, 4)
+        T_world_cam) along camera-frame direction ``cam_dirs[i]`` at normalised time
+        ``times[which[i]]`` and sees ``backdrop[i]`` beyond the box."""
+        f64 = np.float64
+        m = int(np.asarray(which).shape[0])
+        out, hits, evaluated = np.empty(m, f64), np.empty(m, np.bool_), np.empty(m, np.int64)
+        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+        _march(np.ascontiguousarray(poses, f64), np.ascontiguousarray(times, f64),
+               np.ascontiguousarray(which, np.int64), np.ascontiguousarray(cam_dirs, f64),
+               np.ascontiguousarray(np.broadcast_to(np.asarray(backdrop, f64), (m,))), self.box[0], self.box[1],
+               self.near, self.far, self.n_samples, self.cells[0], self.cells[1], self.occ, self.use_occ, self.dyn,
+               self.fade, self.flat, self.static, self.frames, self.frame_lo, self.frame_hi, out, hits, evaluated)
+        return out, int(hits.sum()), int(np.count_nonzero(evaluated)), int(evaluated.sum())
 
 
-__all__ = ["march_baked"]
+__all__ = ["BakedMarcher"]

@@ -151,7 +151,7 @@ class FieldRenderer(CameraRenderer):
         self.samples_evaluated = 0
         self._plan_cache = None
         self._cells_box_cache = None
-        self._cam_dirs = None          # camera-frame ray direction of every pixel (a baked field's marcher)
+        self._marcher = self._cam_dirs = None   # a baked field's marcher and every pixel's camera-frame ray
         if self._marches_baked:
             # the marcher's machine code is loaded (or compiled, once per machine) now, not in the
             # first render: ~0.4 s from numba's cache
@@ -426,8 +426,6 @@ class FieldRenderer(CameraRenderer):
         return isinstance(self.field, BakedField) and self.device.type == "cpu"
 
     def _march_baked(self, poses, tn, which, pixels) -> np.ndarray:
-        from .baked_rays import march_baked
-
         m = int(pixels.size)
         self.rays_total += m
         if self.flat_grey is not None:
@@ -439,14 +437,17 @@ class FieldRenderer(CameraRenderer):
         cells = self._cached_cells_box()
         if cells is None:                   # no cell can show anything: every ray sees the backdrop
             return np.maximum(backdrop, 0.0).astype(np.float32)
-        if self._cam_dirs is None:
+        if self._marcher is None:
+            from .baked_rays import BakedMarcher
+
+            occupancy = self.occupancy.occupied.numpy() if self.occupancy is not None and self.occupancy.enabled else None
+            self._marcher = BakedMarcher(
+                self.field, box=self.box, near=self.near, far=self.far, n_samples=self.n_samples, cells_box=cells,
+                occupancy=occupancy, dynamic=None if self.dynamic is None else self.dynamic.mask.numpy(),
+                flat=self.flat_grey is not None)
             self._cam_dirs = self.camera.ray_directions(1).reshape(-1, 3)
-        occupancy = self.occupancy.occupied.numpy() if self.occupancy is not None and self.occupancy.enabled else None
-        values, hits, seen, evaluated = march_baked(
-            self.field, poses, tn.numpy(), which, self._cam_dirs[pixels], backdrop, box=self.box, near=self.near,
-            far=self.far, n_samples=self.n_samples, cells_box=cells, occupancy=occupancy,
-            dynamic=None if self.dynamic is None else self.dynamic.mask.numpy(), flat=self.flat_grey is not None,
-            threads=torch.get_num_threads())
+        values, hits, seen, evaluated = self._marcher(poses, tn.numpy(), which, self._cam_dirs[pixels], backdrop,
+                                                      threads=torch.get_num_threads())
         traced = seen if self._skips_rays else hits      # leave-out traces only rays that can see something
         self.rays_rendered += traced
         self.samples_total += traced * self.n_samples
