@@ -244,11 +244,18 @@ def test_render_pixels_draws_pixels_of_many_poses_and_times_as_render(world, bac
     rng = np.random.default_rng(0)
     which = rng.integers(0, 3, 900)
     pixels = rng.integers(0, n, 900)
+    assert r.compiled_rays                      # on the CPU the samples are placed in compiled passes
     got = r.render_pixels(poses, times, which, pixels)
-    assert got.shape == (900,) and got.dtype == np.float32
+    cost = (r.rays_rendered, r.samples_evaluated)
+    assert got.shape == (900,) and got.dtype == np.float32 and min(cost) > 0
     images = [r.render(poses[k], int(times[k])).ravel() for k in range(3)]
     assert max(np.ptp(im) for im in images) > 0.01
     np.testing.assert_allclose(got, [images[k][p] for k, p in zip(which, pixels)], rtol=0, atol=1e-6)
+    r.compiled_rays = False                     # the tensor path (CUDA's): the same values and work
+    before = (r.rays_rendered, r.samples_evaluated)
+    np.testing.assert_allclose(r.render_pixels(poses, times, which, pixels), got, rtol=0, atol=1e-6)
+    assert (r.rays_rendered - before[0], r.samples_evaluated - before[1]) == cost
+    r.compiled_rays = True
     with pytest.raises(InputError, match="pixel index is outside"):
         r.render_pixels(poses, times, [0], [n])
     with pytest.raises(InputError, match="one length"):
@@ -359,3 +366,34 @@ def test_the_baked_marcher_on_extreme_rays_and_densities():
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-5, err_msg=f"density x{scale:g}, {world}")
             if scale == 0.0:
                 assert np.all(got == np.float32(0.25) if world == "field" else got == np.float32(r.flat_grey))
+
+
+@pytest.mark.parametrize("world", ["field", "flat"])
+def test_compiled_sample_placement_on_extreme_rays(world):
+    """The compiled sample placement against the tensor path where float32 rounding bites: a camera
+    inside the box, rays parallel to the box's faces (zero direction components), a camera far away
+    (tiny bins), and a pose whose rays all miss the box."""
+    from evdnerf_ros.field.dynamic_region import DynamicRegion
+    from evdnerf_ros.field.occupancy import OccupancyGrid
+    from evdnerf_ros.field.renderer import FieldRenderer
+
+    mask = torch.zeros((8, 8, 8), dtype=torch.bool)
+    mask[2:6, 2:6, 2:6] = True
+    cells = torch.zeros(10, 10, 10, dtype=torch.bool)
+    cells[1:9, 1:9, 1:9] = True
+    inside = np.eye(4)
+    inside[:3, 3] = [0.05, 0.02, -0.9]                  # looking along +z from inside the box
+    cam = PinholeCamera(5, 5, 4.0, 4.0, 2.0, 2.0)      # the centre pixel's ray is exactly (0, 0, 1)
+    poses = np.stack([inside, look_at([0.0, -3.0, 0.0], [0.0, 0.0, 0.0]), look_at([0.0, -900.0, 0.0], [0.0, 0.0, 0.0]),
+                      look_at([0.0, -3.0, 0.0], [0.0, -9.0, 0.0])])
+    times = np.array([0, 300_000_000, 600_000_000, 900_000_000], np.int64)
+    which, pixels = np.repeat(np.arange(4), 25), np.tile(np.arange(25), 4)
+    r = FieldRenderer(_dense_planes_field(6), cam, [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], duration_ns=10 ** 9,
+                      n_samples=16, dynamic=DynamicRegion(mask), occupancy=OccupancyGrid.from_footprint(cells),
+                      static_world=world, background=0.25)
+    got = r.render_pixels(poses, times, which, pixels)
+    r.compiled_rays = False
+    want = r.render_pixels(poses, times, which, pixels)
+    assert np.all(np.isfinite(got)) and np.ptp(want[:75]) > 0.01
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+    assert np.all(got[75:] == (np.float32(0.25) if world == "field" else np.float32(r.flat_grey)))

@@ -152,6 +152,10 @@ class FieldRenderer(CameraRenderer):
         self._plan_cache = None
         self._cells_box_cache = None
         self._marcher = self._cam_dirs = None   # a baked field's marcher and every pixel's camera-frame ray
+        self._placer = None
+        #: ``render_pixels`` on the CPU places its samples in compiled passes (``field.ray_samples``);
+        #: False: the tensor path (what CUDA runs)
+        self.compiled_rays = self.device.type == "cpu"
         if self._marches_baked:
             # the marcher's machine code is loaded (or compiled, once per machine) now, not in the
             # first render: ~0.4 s from numba's cache
@@ -402,6 +406,8 @@ class FieldRenderer(CameraRenderer):
             raise InputError(f"{self.source}: {tn.numel()} times for {poses.shape[0]} poses")
         if self._marches_baked:
             return self._march_baked(poses, tn, which, pixels)
+        if self.compiled_rays:
+            return self._render_pixels_compiled(poses, tn, which, pixels)
         with torch.no_grad():
             o, d = pixel_rays(self.camera, poses, which, pixels, device=self.device)
             ray_time = tn[torch.as_tensor(which, device=self.device)]
@@ -417,6 +423,68 @@ class FieldRenderer(CameraRenderer):
         self.rays_total += int(pixels.size)
         return np.maximum(out.cpu().numpy().astype(np.float32), 0.0)
 
+    def _backdrop_of(self, poses, which, pixels) -> np.ndarray:
+        """(M,) what single-pixel rays see beyond the box: the flat grey, else the background."""
+        m = int(pixels.size)
+        if self.flat_grey is not None:
+            return np.full(m, self.flat_grey)
+        with torch.no_grad():
+            _, d = pixel_rays(self.camera, poses, which, pixels)
+            return torch.as_tensor(background_grey(self.field, d, self.background)).expand(m).numpy()
+
+    def _camera_dirs(self) -> np.ndarray:
+        if self._cam_dirs is None:
+            self._cam_dirs = self.camera.ray_directions(1).reshape(-1, 3)
+        return self._cam_dirs
+
+    def _render_pixels_compiled(self, poses, tn, which, pixels) -> np.ndarray:
+        """``render_pixels`` with the geometry compiled (``field.ray_samples``): the samples the
+        field is evaluated at are placed ray by ray, the field evaluates them in one batch per
+        chunk of rays, and each ray is composited from its own; the tensor path's values up to
+        float rounding."""
+        from .ray_samples import SamplePlacer, composite
+
+        m = int(pixels.size)
+        self.rays_total += m
+        backdrop = self._backdrop_of(poses, which, pixels)
+        cells = self._cached_cells_box()
+        if cells is None:                   # no cell can show anything: every ray sees the backdrop
+            return np.maximum(backdrop, 0.0).astype(np.float32)
+        if self._placer is None:
+            occupancy = self.occupancy.occupied.numpy() if self.occupancy is not None and self.occupancy.enabled else None
+            self._placer = SamplePlacer(box=self.box, near=self.near, far=self.far, n_samples=self.n_samples,
+                                        cells_box=cells, occupancy=occupancy,
+                                        dynamic=None if self.dynamic is None else self.dynamic.mask.numpy(),
+                                        flat=self.flat_grey is not None)
+        threads = torch.get_num_threads()
+        dirs = self._camera_dirs()[pixels]
+        out = np.empty(m, np.float32)
+        for a in range(0, m, self.chunk):
+            b = min(a + self.chunk, m)
+            rs = self._placer(poses, which[a:b], dirs[a:b], threads=threads)
+            x = torch.from_numpy(rs.x)
+            sigma, grey = torch.zeros(x.shape[0]), torch.zeros(x.shape[0])
+            with torch.no_grad():
+                dyn = torch.from_numpy(rs.is_dynamic)
+                d_idx = torch.nonzero(dyn).squeeze(1)
+                if d_idx.numel():
+                    xd = x[d_idx]
+                    t = tn[torch.from_numpy(which[a:b])[torch.from_numpy(rs.ray)[d_idx]]]
+                    dens, g = self.field.decode(self.field.space_features(xd), t[:, None])
+                    if self.flat_grey is not None:
+                        dens = dens * self.dynamic.inner_weight(xd)
+                    sigma[d_idx], grey[d_idx] = dens.float(), g.float()
+                s_idx = torch.nonzero(~dyn).squeeze(1)
+                if s_idx.numel():
+                    dens, g = self.field.decode_static(self.field.space_features(x[s_idx]))
+                    sigma[s_idx], grey[s_idx] = dens.float(), g.float()
+            out[a:b] = composite(rs, sigma.numpy(), grey.numpy(), backdrop[a:b], threads=threads)
+            traced = int(np.count_nonzero(np.diff(rs.offsets))) if self._skips_rays else int(rs.hits.sum())
+            self.rays_rendered += traced
+            self.samples_total += traced * self.n_samples
+            self.samples_evaluated += int(x.shape[0])
+        return np.maximum(out, 0.0)
+
     @property
     def _marches_baked(self) -> bool:
         """A baked field on the CPU: single pixels are marched in one compiled pass
@@ -428,12 +496,7 @@ class FieldRenderer(CameraRenderer):
     def _march_baked(self, poses, tn, which, pixels) -> np.ndarray:
         m = int(pixels.size)
         self.rays_total += m
-        if self.flat_grey is not None:
-            backdrop = np.full(m, self.flat_grey)
-        else:
-            with torch.no_grad():
-                _, d = pixel_rays(self.camera, poses, which, pixels)
-                backdrop = torch.as_tensor(background_grey(self.field, d, self.background)).expand(m).numpy()
+        backdrop = self._backdrop_of(poses, which, pixels)
         cells = self._cached_cells_box()
         if cells is None:                   # no cell can show anything: every ray sees the backdrop
             return np.maximum(backdrop, 0.0).astype(np.float32)
@@ -445,8 +508,7 @@ class FieldRenderer(CameraRenderer):
                 self.field, box=self.box, near=self.near, far=self.far, n_samples=self.n_samples, cells_box=cells,
                 occupancy=occupancy, dynamic=None if self.dynamic is None else self.dynamic.mask.numpy(),
                 flat=self.flat_grey is not None)
-            self._cam_dirs = self.camera.ray_directions(1).reshape(-1, 3)
-        values, hits, seen, evaluated = self._marcher(poses, tn.numpy(), which, self._cam_dirs[pixels], backdrop,
+        values, hits, seen, evaluated = self._marcher(poses, tn.numpy(), which, self._camera_dirs()[pixels], backdrop,
                                                       threads=torch.get_num_threads())
         traced = seen if self._skips_rays else hits      # leave-out traces only rays that can see something
         self.rays_rendered += traced
