@@ -56,7 +56,7 @@ OPTIONS = SimulationOptions(views=4, val_views=2, moving_views=1, resolution=(96
 TRAIN_CONFIG = {"windows": [16, 32], "window_switch": [0.5], "n_samples": 32, "eval_every": 100}
 TRAIN_MINUTES = 2.0
 #: The published orbit plays the run back from a grid of this many vertices per axis
-#: (``bake_resolution``): 4x the field's own speed on the fork's orbit for none of its events PSNR.
+#: (``bake_resolution``): 2.5x the field's own speed on the fork's orbit for none of its events PSNR.
 PUBLISH_BAKE = 64
 
 

@@ -50,7 +50,10 @@ rounding of batched matrix products, ~1e-7; the tests hold them to 1e-6):
 
 ``render_pixels`` draws single pixels of many poses and times in one batch (the publisher's
 per-pixel sampling, ``sim.sampling.simulate_pixels``): no plan is kept, each dynamic sample is
-decoded at its ray's own time.
+decoded at its ray's own time.  On the CPU (``compiled_rays``) its samples are placed in compiled
+passes (``field.ray_samples``: the same float32 points and cell tests, ray by ray, only the kept
+ones) and composited there, the field evaluated in between in one batch; a baked field is marched
+whole (``field.baked_rays``).  Both give the tensor path's values to float rounding.
 
 ``rays_rendered`` / ``rays_total`` count rays traced (leave-out) / rays of the images, per call;
 ``samples_evaluated`` / ``samples_total`` count field evaluations done / what a full render of
