@@ -482,7 +482,8 @@ class FieldRenderer(CameraRenderer):
                     dens, g = self.field.decode_static(self.field.space_features(x[s_idx]))
                     sigma[s_idx], grey[s_idx] = dens.float(), g.float()
             out[a:b] = composite(rs, sigma.numpy(), grey.numpy(), backdrop[a:b], threads=threads)
-            traced = int(np.count_nonzero(np.diff(rs.offsets))) if self._skips_rays else int(rs.hits.sum())
+            # leave-out traces only rays with a sample that can show anything; without it, every ray
+            traced = int(np.count_nonzero(np.diff(rs.offsets))) if self._skips_rays else b - a
             self.rays_rendered += traced
             self.samples_total += traced * self.n_samples
             self.samples_evaluated += int(x.shape[0])
@@ -511,9 +512,9 @@ class FieldRenderer(CameraRenderer):
                 self.field, box=self.box, near=self.near, far=self.far, n_samples=self.n_samples, cells_box=cells,
                 occupancy=occupancy, dynamic=None if self.dynamic is None else self.dynamic.mask.numpy(),
                 flat=self.flat_grey is not None)
-        values, hits, seen, evaluated = self._marcher(poses, tn.numpy(), which, self._camera_dirs()[pixels], backdrop,
+        values, _, seen, evaluated = self._marcher(poses, tn.numpy(), which, self._camera_dirs()[pixels], backdrop,
                                                       threads=torch.get_num_threads())
-        traced = seen if self._skips_rays else hits      # leave-out traces only rays that can see something
+        traced = seen if self._skips_rays else m         # leave-out traces only rays that can see something
         self.rays_rendered += traced
         self.samples_total += traced * self.n_samples
         self.samples_evaluated += evaluated
