@@ -69,18 +69,18 @@ def _cell32(grid, x0, x1, x2):
 def _walk(r, poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo, cells_hi, occ, use_occ, dyn, flat,
           x_out, is_dyn, at):
     """Walk ray r's samples; keep those the field is evaluated at (written from ``at`` when
-    ``x_out`` has room); returns (hit, delta, kept)."""
+    ``x_out`` has room); returns (bin length, samples kept), (0, 0) for a ray that misses the box."""
     ox, oy, oz, dx, dy, dz = _ray(poses[which[r]], cam_dirs[r])
     o = (ox, oy, oz)
     d = (dx, dy, dz)
     t_near, t_far, hit = _slab32(o, d, lo, hi, near, far)
     if not hit:
-        return False, f32(0.0), 0
+        return f32(0.0), 0
     delta = (t_far - t_near) / f32(n_samples)
     # only the samples that can fall in the cells' box (float64, one more each side for rounding)
     ta, tb, through = _slab32(o, d, cells_lo, cells_hi, near, far)
     if not through:
-        return True, delta, 0
+        return delta, 0
     k_lo = max(int(math.floor((float(ta) - float(t_near)) / float(delta) - 0.5)) - 1, 0)
     k_hi = min(int(math.ceil((float(tb) - float(t_near)) / float(delta) - 0.5)) + 1, n_samples - 1)
     kept = 0
@@ -99,15 +99,15 @@ def _walk(r, poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo, cel
             x_out[at + kept, 0], x_out[at + kept, 1], x_out[at + kept, 2] = x0, x1, x2
             is_dyn[at + kept] = dynamic
         kept += 1
-    return True, delta, kept
+    return delta, kept
 
 
 @numba.njit(**_JIT)
 def _count(poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo, cells_hi, occ, use_occ, dyn, flat,
-           hits, delta, counts):
+           delta, counts):
     none_x, none_d = np.empty((0, 3), np.float32), np.empty(0, np.bool_)
     for r in prange(which.shape[0]):
-        hits[r], delta[r], counts[r] = _walk(r, poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo,
+        delta[r], counts[r] = _walk(r, poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo,
                                              cells_hi, occ, use_occ, dyn, flat, none_x, none_d, 0)
 
 
@@ -119,31 +119,36 @@ def _fill(poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo, cells_
               x_out, is_dyn, offsets[r])
 
 
+@numba.njit(inline="always")
+def accumulate(transmit, acc, g, sigma, grey, delta):
+    """One sample of front-to-back compositing (``renderer._composite``'s rule): the ray's
+    transmittance, opacity and grey so far, after a sample of density ``sigma`` and grey ``grey``
+    over a bin of length ``delta``."""
+    tau = float(sigma) * float(delta)
+    w = -math.expm1(-tau) * transmit
+    return transmit * math.exp(-tau), acc + w, g + w * float(grey)
+
+
 @numba.njit(**_JIT)
 def _composite(offsets, sigma, grey, delta, backdrop, out):
     for r in prange(backdrop.shape[0]):
-        transmit, g, acc = 1.0, 0.0, 0.0
+        transmit, acc, g = 1.0, 0.0, 0.0
         for s in range(offsets[r], offsets[r + 1]):
-            tau = float(sigma[s]) * float(delta[r])
-            w = -math.expm1(-tau) * transmit
-            transmit *= math.exp(-tau)
-            acc += w
-            g += w * float(grey[s])
+            transmit, acc, g = accumulate(transmit, acc, g, sigma[s], grey[s], delta[r])
         out[r] = g + (1.0 - acc) * backdrop[r]
 
 
 class RaySamples:
     """The samples of a batch of single-pixel rays the field is evaluated at (``place_samples``)."""
 
-    __slots__ = ("x", "is_dynamic", "ray", "offsets", "delta", "hits")
+    __slots__ = ("x", "is_dynamic", "ray", "offsets", "delta")
 
-    def __init__(self, x, is_dynamic, ray, offsets, delta, hits):
+    def __init__(self, x, is_dynamic, ray, offsets, delta):
         self.x = x                      # (N, 3) float32 box-normalised points, ray by ray, in order
         self.is_dynamic = is_dynamic    # (N,) bool: inside the dynamic region
         self.ray = ray                  # (N,) int64: the ray of each point
         self.offsets = offsets          # (M + 1,) int64: ray r's points are offsets[r]:offsets[r + 1]
-        self.delta = delta              # (M,) float32 bin length of each ray
-        self.hits = hits                # (M,) bool: the ray crosses the box
+        self.delta = delta              # (M,) float32 bin length of each ray (0: it misses the box)
 
 
 class SamplePlacer:
@@ -163,6 +168,12 @@ class SamplePlacer:
         self.occ = np.zeros((1, 1, 1), np.bool_) if occupancy is None else np.ascontiguousarray(occupancy, np.bool_)
         self.dyn = np.ones((1, 1, 1), np.bool_) if dynamic is None else np.ascontiguousarray(dynamic, np.bool_)
 
+    def warm_up(self) -> None:
+        """Load the compiled passes (or compile them, once per machine) with a batch of no rays."""
+        self(np.eye(4)[None], np.zeros(0, np.int64), np.zeros((0, 3)))
+        composite(RaySamples(np.zeros((0, 3), f32), np.zeros(0, np.bool_), np.zeros(0, np.int64),
+                             np.zeros(1, np.int64), np.zeros(0, f32)), np.zeros(0, f32), np.zeros(0, f32), np.zeros(0))
+
     def __call__(self, poses, which, cam_dirs, *, threads: int = 1) -> RaySamples:
         """Ray i leaves pose ``poses[which[i]]`` ((K, 4, 4) T_world_cam) along camera-frame
         direction ``cam_dirs[i]``."""
@@ -171,17 +182,17 @@ class SamplePlacer:
         which = np.ascontiguousarray(which, np.int64)
         cam_dirs = np.ascontiguousarray(cam_dirs, np.float64)
         m = which.shape[0]
-        hits, delta, counts = np.empty(m, np.bool_), np.empty(m, f32), np.empty(m, np.int64)
+        delta, counts = np.empty(m, f32), np.empty(m, np.int64)
         args = (self.lo, self.hi, self.near, self.far, self.n_samples, self.cells_lo, self.cells_hi, self.occ,
                 self.use_occ, self.dyn, self.flat)
-        _count(poses, which, cam_dirs, *args, hits, delta, counts)
+        _count(poses, which, cam_dirs, *args, delta, counts)
         offsets = np.zeros(m + 1, np.int64)
         np.cumsum(counts, out=offsets[1:])
         n = int(offsets[-1])
         x, is_dyn = np.empty((n, 3), f32), np.empty(n, np.bool_)
-        if n:
+        if n or not m:                  # (no rays: the warm-up)
             _fill(poses, which, cam_dirs, *args, offsets, x, is_dyn)
-        return RaySamples(x, is_dyn, np.repeat(np.arange(m), counts), offsets, delta, hits)
+        return RaySamples(x, is_dyn, np.repeat(np.arange(m), counts), offsets, delta)
 
 
 def composite(samples: RaySamples, sigma, grey, backdrop, *, threads: int = 1) -> np.ndarray:
@@ -196,4 +207,4 @@ def composite(samples: RaySamples, sigma, grey, backdrop, *, threads: int = 1) -
     return out
 
 
-__all__ = ["RaySamples", "SamplePlacer", "composite"]
+__all__ = ["RaySamples", "SamplePlacer", "accumulate", "composite"]

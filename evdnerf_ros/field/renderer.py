@@ -154,16 +154,10 @@ class FieldRenderer(CameraRenderer):
         self.samples_evaluated = 0
         self._plan_cache = None
         self._cells_box_cache = None
-        self._marcher = self._cam_dirs = None   # a baked field's marcher and every pixel's camera-frame ray
-        self._placer = None
+        self._compiled = self._cam_dirs = None  # the compiled single-pixel pass, every pixel's camera-frame ray
         #: ``render_pixels`` on the CPU places its samples in compiled passes (``field.ray_samples``);
         #: False: the tensor path (what CUDA runs)
         self.compiled_rays = self.device.type == "cpu"
-        if self._marches_baked:
-            # the marcher's machine code is loaded (or compiled, once per machine) now, not in the
-            # first render: ~0.4 s from numba's cache
-            self._march_baked(np.eye(4)[None], torch.zeros(1), np.zeros(0, np.int64), np.zeros(0, np.int64))
-            self.rays_total = 0
 
     def normalized_time(self, t_ns) -> float:
         """The field's time in [0, 1] of scene time ``t_ns`` (int64 ns)."""
@@ -445,26 +439,20 @@ class FieldRenderer(CameraRenderer):
         field is evaluated at are placed ray by ray, the field evaluates them in one batch per
         chunk of rays, and each ray is composited from its own; the tensor path's values up to
         float rounding."""
-        from .ray_samples import SamplePlacer, composite
+        from .ray_samples import composite
 
         m = int(pixels.size)
         self.rays_total += m
         backdrop = self._backdrop_of(poses, which, pixels)
-        cells = self._cached_cells_box()
-        if cells is None:                   # no cell can show anything: every ray sees the backdrop
+        placer = self._compiled_pass()
+        if placer is None:                  # no cell can show anything: every ray sees the backdrop
             return np.maximum(backdrop, 0.0).astype(np.float32)
-        if self._placer is None:
-            occupancy = self.occupancy.occupied.numpy() if self.occupancy is not None and self.occupancy.enabled else None
-            self._placer = SamplePlacer(box=self.box, near=self.near, far=self.far, n_samples=self.n_samples,
-                                        cells_box=cells, occupancy=occupancy,
-                                        dynamic=None if self.dynamic is None else self.dynamic.mask.numpy(),
-                                        flat=self.flat_grey is not None)
         threads = torch.get_num_threads()
         dirs = self._camera_dirs()[pixels]
         out = np.empty(m, np.float32)
         for a in range(0, m, self.chunk):
             b = min(a + self.chunk, m)
-            rs = self._placer(poses, which[a:b], dirs[a:b], threads=threads)
+            rs = placer(poses, which[a:b], dirs[a:b], threads=threads)
             x = torch.from_numpy(rs.x)
             sigma, grey = torch.zeros(x.shape[0]), torch.zeros(x.shape[0])
             with torch.no_grad():
@@ -482,11 +470,7 @@ class FieldRenderer(CameraRenderer):
                     dens, g = self.field.decode_static(self.field.space_features(x[s_idx]))
                     sigma[s_idx], grey[s_idx] = dens.float(), g.float()
             out[a:b] = composite(rs, sigma.numpy(), grey.numpy(), backdrop[a:b], threads=threads)
-            # leave-out traces only rays with a sample that can show anything; without it, every ray
-            traced = int(np.count_nonzero(np.diff(rs.offsets))) if self._skips_rays else b - a
-            self.rays_rendered += traced
-            self.samples_total += traced * self.n_samples
-            self.samples_evaluated += int(x.shape[0])
+            self._count_traced(rs, b - a)
         return np.maximum(out, 0.0)
 
     @property
@@ -501,24 +485,48 @@ class FieldRenderer(CameraRenderer):
         m = int(pixels.size)
         self.rays_total += m
         backdrop = self._backdrop_of(poses, which, pixels)
-        cells = self._cached_cells_box()
-        if cells is None:                   # no cell can show anything: every ray sees the backdrop
+        marcher = self._compiled_pass()
+        if marcher is None:                 # no cell can show anything: every ray sees the backdrop
             return np.maximum(backdrop, 0.0).astype(np.float32)
-        if self._marcher is None:
-            from .baked_rays import BakedMarcher
+        values, rs = marcher(poses, tn.numpy(), which, self._camera_dirs()[pixels], backdrop,
+                                   threads=torch.get_num_threads())
+        self._count_traced(rs, m)
+        return np.maximum(values, 0.0).astype(np.float32)
 
-            occupancy = self.occupancy.occupied.numpy() if self.occupancy is not None and self.occupancy.enabled else None
-            self._marcher = BakedMarcher(
-                self.field, box=self.box, near=self.near, far=self.far, n_samples=self.n_samples, cells_box=cells,
-                occupancy=occupancy, dynamic=None if self.dynamic is None else self.dynamic.mask.numpy(),
-                flat=self.flat_grey is not None)
-        values, _, seen, evaluated = self._marcher(poses, tn.numpy(), which, self._camera_dirs()[pixels], backdrop,
-                                                      threads=torch.get_num_threads())
-        traced = seen if self._skips_rays else m         # leave-out traces only rays that can see something
+    def _compiled_pass(self):
+        """The compiled single-pixel pass of this set-up (made once): a baked field's
+        ``BakedMarcher``, else a ``SamplePlacer``; None when no cell can show anything."""
+        if self._compiled is None:
+            cells = self._cached_cells_box()
+            if cells is None:
+                return None
+            from .baked_rays import BakedMarcher
+            from .ray_samples import SamplePlacer
+
+            setup = dict(box=self.box, near=self.near, far=self.far, n_samples=self.n_samples, cells_box=cells,
+                         occupancy=self.occupancy.occupied.numpy() if self.occupancy is not None
+                         and self.occupancy.enabled else None,
+                         dynamic=None if self.dynamic is None else self.dynamic.mask.numpy(),
+                         flat=self.flat_grey is not None)
+            self._compiled = BakedMarcher(self.field, **setup) if self._marches_baked else SamplePlacer(**setup)
+        return self._compiled
+
+    def warm_up(self) -> None:
+        """Load the compiled single-pixel passes (``compiled_rays``, a baked field's marcher) now
+        rather than in the first ``render_pixels`` (~0.4 s from numba's cache; compiled once per
+        machine, ~10 s): the publisher calls it before a per-pixel run."""
+        if self._marches_baked or self.compiled_rays:
+            compiled = self._compiled_pass()
+            if compiled is not None:
+                compiled.warm_up()
+
+    def _count_traced(self, rs, m: int) -> None:
+        """Count ``m`` single-pixel rays' work (``ray_samples.RaySamples`` ``rs``) as the tensor path:
+        leave-out traces only rays with a sample that can show anything; without it, every ray."""
+        traced = int(np.count_nonzero(np.diff(rs.offsets))) if self._skips_rays else m
         self.rays_rendered += traced
         self.samples_total += traced * self.n_samples
-        self.samples_evaluated += evaluated
-        return np.maximum(values, 0.0).astype(np.float32)
+        self.samples_evaluated += int(rs.x.shape[0])
 
 
 def _composite(sigma, grey, delta, background: torch.Tensor):

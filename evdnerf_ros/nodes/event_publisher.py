@@ -415,6 +415,8 @@ class EventPublisher(Node):
         moving = field and self._camera_moves()
         per_pixel = p["adaptive"] and field and (p["per_pixel"] == "true" or (p["per_pixel"] == "auto" and moving))
         guard = p["adaptive"] and moving and p["max_travel_px"] > 0
+        if per_pixel:
+            self.source.warm_up()      # the compiled single-pixel passes, loaded before the clock starts
         self.logger.info(f"publishing {(self.t1 - self.t0) / NS:.3f} s of events from the {self.source.kind} on "
                          f"{self.events_pub.topic} ({p['encoding']}, {self.camera.width}x{self.camera.height}"
                          f"{', DDS domain %d' % self.dds.domain_id if self.dds is not None else ', no DDS'}"
