@@ -51,9 +51,10 @@ def _fade(vol, x0, x1, x2):
 
 
 @numba.njit(**_JIT)
-def _render(offsets, x, is_dyn, delta, which, times, backdrop, flat, fade_vol, static, frames, flo, fhi, out):
-    """Each ray r's grey: its kept points ``x[offsets[r]:offsets[r + 1]]`` (box-normalised) looked up
-    in the baked field at its time ``times[which[r]]`` and composited in order."""
+def _render(x, is_dyn, counts, delta, which, times, backdrop, flat, fade_vol, static, frames, flo, fhi, out):
+    """Each ray r's grey: its kept points ``x[r, :counts[r]]`` (box-normalised,
+    ``SamplePlacer.slots``) looked up in the baked field at its time ``times[which[r]]`` and
+    composited in order."""
     n_frames = frames.shape[0]
     for r in prange(backdrop.shape[0]):
         u = min(max(float(times[which[r]]), 0.0), 1.0) * (n_frames - 1)
@@ -61,9 +62,9 @@ def _render(offsets, x, is_dyn, delta, which, times, backdrop, flat, fade_vol, s
         ft = u - f0
         a, b = frames[f0], frames[f0 + 1]
         transmit, acc, g = 1.0, 0.0, 0.0
-        for s in range(offsets[r], offsets[r + 1]):
-            x0, x1, x2 = float(x[s, 0]), float(x[s, 1]), float(x[s, 2])
-            if is_dyn[s]:                        # the two frames around the ray's time (BakedField.decode)
+        for s in range(counts[r]):
+            x0, x1, x2 = float(x[r, s, 0]), float(x[r, s, 1]), float(x[r, s, 2])
+            if is_dyn[r, s]:                        # the two frames around the ray's time (BakedField.decode)
                 i, fi = _corner((x0 - flo[0]) / (fhi[0] - flo[0]) * (frames.shape[2] - 1), frames.shape[2])
                 j, fj = _corner((x1 - flo[1]) / (fhi[1] - flo[1]) * (frames.shape[3] - 1), frames.shape[3])
                 k, fk = _corner((x2 - flo[2]) / (fhi[2] - flo[2]) * (frames.shape[4] - 1), frames.shape[4])
@@ -99,21 +100,19 @@ class BakedMarcher:
 
     def warm_up(self) -> None:
         """Load the compiled passes (or compile them, once per machine) with a batch of no rays."""
-        self.placer.warm_up()
         self(np.eye(4)[None], np.zeros(1), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
 
     def __call__(self, poses, times, which, cam_dirs, backdrop, *, threads: int = 1):
-        """(values (M,) float64 linear intensity, samples) of M rays: ray i leaves pose
-        ``poses[which[i]]`` ((K, 4, 4) T_world_cam) along camera-frame direction ``cam_dirs[i]`` at
-        normalised time ``times[which[i]]`` and sees ``backdrop[i]`` beyond the box."""
-        rs = self.placer(poses, which, cam_dirs, threads=threads)
-        m = rs.delta.shape[0]
+        """(values (M,) float64 linear intensity, samples kept per ray (M,)) of M rays: ray i leaves
+        pose ``poses[which[i]]`` ((K, 4, 4) T_world_cam) along camera-frame direction ``cam_dirs[i]``
+        at normalised time ``times[which[i]]`` and sees ``backdrop[i]`` beyond the box."""
+        x, dyn, counts, delta = self.placer.slots(poses, which, cam_dirs, threads=threads)
+        m = counts.shape[0]
         out = np.empty(m, np.float64)
-        _render(rs.offsets, rs.x, rs.is_dynamic, rs.delta, np.ascontiguousarray(which, np.int64),
-                np.ascontiguousarray(times, np.float64), np.ascontiguousarray(np.broadcast_to(
-                    np.asarray(backdrop, np.float64), (m,))), self.flat, self.fade, self.static, self.frames,
-                self.frame_lo, self.frame_hi, out)
-        return out, rs
+        _render(x, dyn, counts, delta, np.ascontiguousarray(which, np.int64), np.ascontiguousarray(times, np.float64),
+                np.ascontiguousarray(np.broadcast_to(np.asarray(backdrop, np.float64), (m,))), self.flat, self.fade,
+                self.static, self.frames, self.frame_lo, self.frame_hi, out)
+        return out, counts
 
 
 __all__ = ["BakedMarcher"]

@@ -5,10 +5,10 @@ The tensor path places every sample of every traced ray in the box around the ce
 normalises it and looks it up in the occupancy grid and the dynamic region before it knows which
 samples matter: per call ~100 tensor operations over (rays x samples) points, ~80 % of a moving
 camera's render time on the fork's orbit (the field's own lookups and decoder: ~20 %). Here
-``place_samples`` makes each ray from its pose and pixel and walks its samples in one loop,
-keeping only those the field is evaluated at (occupied ones; with a flat static world, the
-dynamic ones), ray by ray; the caller evaluates the field at them in one batch and
-``composite`` sums each ray's kept samples in order. Every operation the tensor path does in
+``SamplePlacer`` makes each ray from its pose and pixel and walks its samples once, keeping only
+those the field is evaluated at (occupied ones; with a flat static world, the dynamic ones) in a
+slot per ray; the caller evaluates the field at them in one batch and ``composite`` sums each
+ray's kept samples in order. Every operation the tensor path does in
 float32 is done here in float32 in the same order (ray-box slabs, bin centres, points,
 normalisation, the nearest-cell lookups), so the same samples are kept at the same points; the
 compositing sums in float64 (equal to float32 rounding).
@@ -67,9 +67,9 @@ def _cell32(grid, x0, x1, x2):
 
 @numba.njit(inline="always")
 def _walk(r, poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo, cells_hi, occ, use_occ, dyn, flat,
-          x_out, is_dyn, at):
-    """Walk ray r's samples; keep those the field is evaluated at (written from ``at`` when
-    ``x_out`` has room); returns (bin length, samples kept), (0, 0) for a ray that misses the box."""
+          x_out, is_dyn):
+    """Walk ray r's samples; keep those the field is evaluated at (into ``x_out`` / ``is_dyn``, in
+    order); returns (bin length, samples kept), (0, 0) for a ray that misses the box."""
     ox, oy, oz, dx, dy, dz = _ray(poses[which[r]], cam_dirs[r])
     o = (ox, oy, oz)
     d = (dx, dy, dz)
@@ -95,28 +95,18 @@ def _walk(r, poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo, cel
         dynamic = _cell32(dyn, x0, x1, x2)
         if flat and not dynamic:
             continue
-        if x_out.shape[0]:
-            x_out[at + kept, 0], x_out[at + kept, 1], x_out[at + kept, 2] = x0, x1, x2
-            is_dyn[at + kept] = dynamic
+        x_out[kept, 0], x_out[kept, 1], x_out[kept, 2] = x0, x1, x2
+        is_dyn[kept] = dynamic
         kept += 1
     return delta, kept
 
 
 @numba.njit(**_JIT)
-def _count(poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo, cells_hi, occ, use_occ, dyn, flat,
-           delta, counts):
-    none_x, none_d = np.empty((0, 3), np.float32), np.empty(0, np.bool_)
+def _place(poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo, cells_hi, occ, use_occ, dyn, flat,
+           delta, counts, x_slots, dyn_slots):
     for r in prange(which.shape[0]):
-        delta[r], counts[r] = _walk(r, poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo,
-                                             cells_hi, occ, use_occ, dyn, flat, none_x, none_d, 0)
-
-
-@numba.njit(**_JIT)
-def _fill(poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo, cells_hi, occ, use_occ, dyn, flat,
-          offsets, x_out, is_dyn):
-    for r in prange(which.shape[0]):
-        _walk(r, poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo, cells_hi, occ, use_occ, dyn, flat,
-              x_out, is_dyn, offsets[r])
+        delta[r], counts[r] = _walk(r, poses, which, cam_dirs, lo, hi, near, far, n_samples, cells_lo, cells_hi,
+                                    occ, use_occ, dyn, flat, x_slots[r], dyn_slots[r])
 
 
 @numba.njit(inline="always")
@@ -139,24 +129,25 @@ def _composite(offsets, sigma, grey, delta, backdrop, out):
 
 
 class RaySamples:
-    """The samples of a batch of single-pixel rays the field is evaluated at (``place_samples``)."""
+    """The samples of a batch of single-pixel rays the field is evaluated at (``SamplePlacer``)."""
 
-    __slots__ = ("x", "is_dynamic", "ray", "offsets", "delta")
+    __slots__ = ("x", "is_dynamic", "ray", "offsets", "counts", "delta")
 
-    def __init__(self, x, is_dynamic, ray, offsets, delta):
+    def __init__(self, x, is_dynamic, ray, offsets, counts, delta):
         self.x = x                      # (N, 3) float32 box-normalised points, ray by ray, in order
         self.is_dynamic = is_dynamic    # (N,) bool: inside the dynamic region
         self.ray = ray                  # (N,) int64: the ray of each point
         self.offsets = offsets          # (M + 1,) int64: ray r's points are offsets[r]:offsets[r + 1]
+        self.counts = counts            # (M,) int64: points per ray
         self.delta = delta              # (M,) float32 bin length of each ray (0: it misses the box)
 
 
 class SamplePlacer:
-    """``place_samples`` for one renderer's set-up: the scene ``box`` (float64 (2, 3), used in
-    float32 as the tensor path does), ``n_samples`` bins per ray in [near, far], the world box of
-    the cells a ray must reach (``cells_box``), the occupancy grid (None: every point in the box)
-    and the dynamic region (None: every point is dynamic) as boolean (X, Y, Z) grids over the box;
-    ``flat``: only dynamic points are kept."""
+    """Places single-pixel rays' samples for one renderer's set-up: the scene ``box`` (float64
+    (2, 3), used in float32 as the tensor path does), ``n_samples`` bins per ray in [near, far], the
+    world box of the cells a ray must reach (``cells_box``), the occupancy grid (None: every point
+    in the box) and the dynamic region (None: every point is dynamic) as boolean (X, Y, Z) grids
+    over the box; ``flat``: only dynamic points are kept."""
 
     def __init__(self, *, box, near: float, far: float, n_samples: int, cells_box, occupancy, dynamic, flat: bool):
         box = np.asarray(box, np.float64).reshape(2, 3)
@@ -170,29 +161,31 @@ class SamplePlacer:
 
     def warm_up(self) -> None:
         """Load the compiled passes (or compile them, once per machine) with a batch of no rays."""
-        self(np.eye(4)[None], np.zeros(0, np.int64), np.zeros((0, 3)))
-        composite(RaySamples(np.zeros((0, 3), f32), np.zeros(0, np.bool_), np.zeros(0, np.int64),
-                             np.zeros(1, np.int64), np.zeros(0, f32)), np.zeros(0, f32), np.zeros(0, f32), np.zeros(0))
+        rs = self(np.eye(4)[None], np.zeros(0, np.int64), np.zeros((0, 3)))
+        composite(rs, np.zeros(0, f32), np.zeros(0, f32), np.zeros(0))
+
+    def slots(self, poses, which, cam_dirs, *, threads: int = 1):
+        """The kept samples of each ray in a slot of its own, walked once: (points (M, n_samples, 3)
+        float32, dynamic (M, n_samples) bool, counts (M,): ray r's points are points[r, :counts[r]],
+        bin lengths (M,) float32). Ray i leaves pose ``poses[which[i]]`` ((K, 4, 4) T_world_cam)
+        along camera-frame direction ``cam_dirs[i]``."""
+        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+        which = np.ascontiguousarray(which, np.int64)
+        m, s = which.shape[0], self.n_samples
+        delta, counts = np.empty(m, f32), np.empty(m, np.int64)
+        x, dyn = np.empty((m, s, 3), f32), np.empty((m, s), np.bool_)
+        _place(np.ascontiguousarray(poses, np.float64), which, np.ascontiguousarray(cam_dirs, np.float64), self.lo,
+               self.hi, self.near, self.far, s, self.cells_lo, self.cells_hi, self.occ, self.use_occ, self.dyn,
+               self.flat, delta, counts, x, dyn)
+        return x, dyn, counts, delta
 
     def __call__(self, poses, which, cam_dirs, *, threads: int = 1) -> RaySamples:
-        """Ray i leaves pose ``poses[which[i]]`` ((K, 4, 4) T_world_cam) along camera-frame
-        direction ``cam_dirs[i]``."""
-        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
-        poses = np.ascontiguousarray(poses, np.float64)
-        which = np.ascontiguousarray(which, np.int64)
-        cam_dirs = np.ascontiguousarray(cam_dirs, np.float64)
-        m = which.shape[0]
-        delta, counts = np.empty(m, f32), np.empty(m, np.int64)
-        args = (self.lo, self.hi, self.near, self.far, self.n_samples, self.cells_lo, self.cells_hi, self.occ,
-                self.use_occ, self.dyn, self.flat)
-        _count(poses, which, cam_dirs, *args, delta, counts)
-        offsets = np.zeros(m + 1, np.int64)
+        """The kept samples packed ray by ray (``slots``, then only the filled slots)."""
+        x, dyn, counts, delta = self.slots(poses, which, cam_dirs, threads=threads)
+        filled = np.arange(self.n_samples)[None, :] < counts[:, None]
+        offsets = np.zeros(counts.size + 1, np.int64)
         np.cumsum(counts, out=offsets[1:])
-        n = int(offsets[-1])
-        x, is_dyn = np.empty((n, 3), f32), np.empty(n, np.bool_)
-        if n or not m:                  # (no rays: the warm-up)
-            _fill(poses, which, cam_dirs, *args, offsets, x, is_dyn)
-        return RaySamples(x, is_dyn, np.repeat(np.arange(m), counts), offsets, delta)
+        return RaySamples(x[filled], dyn[filled], np.repeat(np.arange(counts.size), counts), offsets, counts, delta)
 
 
 def composite(samples: RaySamples, sigma, grey, backdrop, *, threads: int = 1) -> np.ndarray:

@@ -470,7 +470,7 @@ class FieldRenderer(CameraRenderer):
                     dens, g = self.field.decode_static(self.field.space_features(x[s_idx]))
                     sigma[s_idx], grey[s_idx] = dens.float(), g.float()
             out[a:b] = composite(rs, sigma.numpy(), grey.numpy(), backdrop[a:b], threads=threads)
-            self._count_traced(rs, b - a)
+            self._count_traced(rs.counts, b - a)
         return np.maximum(out, 0.0)
 
     @property
@@ -488,10 +488,15 @@ class FieldRenderer(CameraRenderer):
         marcher = self._compiled_pass()
         if marcher is None:                 # no cell can show anything: every ray sees the backdrop
             return np.maximum(backdrop, 0.0).astype(np.float32)
-        values, rs = marcher(poses, tn.numpy(), which, self._camera_dirs()[pixels], backdrop,
-                                   threads=torch.get_num_threads())
-        self._count_traced(rs, m)
-        return np.maximum(values, 0.0).astype(np.float32)
+        dirs = self._camera_dirs()[pixels]
+        out = np.empty(m, np.float32)
+        for a in range(0, m, self.chunk):
+            b = min(a + self.chunk, m)
+            values, counts = marcher(poses, tn.numpy(), which[a:b], dirs[a:b], backdrop[a:b],
+                                     threads=torch.get_num_threads())
+            out[a:b] = values
+            self._count_traced(counts, b - a)
+        return np.maximum(out, 0.0)
 
     def _compiled_pass(self):
         """The compiled single-pixel pass of this set-up (made once): a baked field's
@@ -520,13 +525,13 @@ class FieldRenderer(CameraRenderer):
             if compiled is not None:
                 compiled.warm_up()
 
-    def _count_traced(self, rs, m: int) -> None:
-        """Count ``m`` single-pixel rays' work (``ray_samples.RaySamples`` ``rs``) as the tensor path:
-        leave-out traces only rays with a sample that can show anything; without it, every ray."""
-        traced = int(np.count_nonzero(np.diff(rs.offsets))) if self._skips_rays else m
+    def _count_traced(self, counts, m: int) -> None:
+        """Count ``m`` single-pixel rays' work (``counts``: samples evaluated per ray) as the tensor
+        path: leave-out traces only rays with a sample that can show anything; without it, every ray."""
+        traced = int(np.count_nonzero(counts)) if self._skips_rays else m
         self.rays_rendered += traced
         self.samples_total += traced * self.n_samples
-        self.samples_evaluated += int(rs.x.shape[0])
+        self.samples_evaluated += int(counts.sum())
 
 
 def _composite(sigma, grey, delta, background: torch.Tensor):
