@@ -289,7 +289,7 @@ def test_a_baked_field_marches_pixels_as_the_tensor_path_renders_them(world, gri
     baked = BakedField.bake(_dense_planes_field(6), resolution=12, times=5, dynamic=region)
     r = FieldRenderer(baked, CAM, box, duration_ns=10 ** 9, n_samples=24, dynamic=region, static_world=world,
                       occupancy=OccupancyGrid.from_footprint(cells) if grids else None, background=0.3)
-    assert r._marches_baked
+    assert r.compiled_rays and r._baked
     times = np.array([100_000_000, 400_000_000, 900_000_000], np.int64)
     poses = np.stack([_moving_pose(t) for t in times])
     n = CAM.width * CAM.height

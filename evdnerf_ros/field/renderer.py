@@ -155,8 +155,8 @@ class FieldRenderer(CameraRenderer):
         self._plan_cache = None
         self._cells_box_cache = None
         self._compiled = self._cam_dirs = None  # the compiled single-pixel pass, every pixel's camera-frame ray
-        #: ``render_pixels`` on the CPU places its samples in compiled passes (``field.ray_samples``);
-        #: False: the tensor path (what CUDA runs)
+        #: ``render_pixels`` on the CPU places its samples in compiled passes (``field.ray_samples``; a baked
+        #: field marched whole, ``field.baked_rays``); False: the tensor path (what CUDA runs)
         self.compiled_rays = self.device.type == "cpu"
 
     def normalized_time(self, t_ns) -> float:
@@ -401,8 +401,6 @@ class FieldRenderer(CameraRenderer):
                           dtype=torch.float32, device=self.device)
         if tn.numel() != poses.shape[0]:
             raise InputError(f"{self.source}: {tn.numel()} times for {poses.shape[0]} poses")
-        if self._marches_baked:
-            return self._march_baked(poses, tn, which, pixels)
         if self.compiled_rays:
             return self._render_pixels_compiled(poses, tn, which, pixels)
         with torch.no_grad():
@@ -435,68 +433,58 @@ class FieldRenderer(CameraRenderer):
         return self._cam_dirs
 
     def _render_pixels_compiled(self, poses, tn, which, pixels) -> np.ndarray:
-        """``render_pixels`` with the geometry compiled (``field.ray_samples``): the samples the
-        field is evaluated at are placed ray by ray, the field evaluates them in one batch per
-        chunk of rays, and each ray is composited from its own; the tensor path's values up to
+        """``render_pixels`` with the geometry compiled, chunk by chunk of rays: a baked field's
+        marched whole (``field.baked_rays``), any other field's samples placed by ``field.ray_samples``
+        and evaluated by the field in one batch (``_field_chunk``); the tensor path's values up to
         float rounding."""
-        from .ray_samples import composite
-
         m = int(pixels.size)
         self.rays_total += m
         backdrop = self._backdrop_of(poses, which, pixels)
-        placer = self._compiled_pass()
-        if placer is None:                  # no cell can show anything: every ray sees the backdrop
+        compiled = self._compiled_pass()
+        if compiled is None:                # no cell can show anything: every ray sees the backdrop
             return np.maximum(backdrop, 0.0).astype(np.float32)
         threads = torch.get_num_threads()
         dirs = self._camera_dirs()[pixels]
         out = np.empty(m, np.float32)
         for a in range(0, m, self.chunk):
             b = min(a + self.chunk, m)
-            rs = placer(poses, which[a:b], dirs[a:b], threads=threads)
-            x = torch.from_numpy(rs.x)
-            sigma, grey = torch.zeros(x.shape[0]), torch.zeros(x.shape[0])
-            with torch.no_grad():
-                dyn = torch.from_numpy(rs.is_dynamic)
-                d_idx = torch.nonzero(dyn).squeeze(1)
-                if d_idx.numel():
-                    xd = x[d_idx]
-                    t = tn[torch.from_numpy(which[a:b])[torch.from_numpy(rs.ray)[d_idx]]]
-                    dens, g = self.field.decode(self.field.space_features(xd), t[:, None])
-                    if self.flat_grey is not None:
-                        dens = dens * self.dynamic.inner_weight(xd)
-                    sigma[d_idx], grey[d_idx] = dens.float(), g.float()
-                s_idx = torch.nonzero(~dyn).squeeze(1)
-                if s_idx.numel():
-                    dens, g = self.field.decode_static(self.field.space_features(x[s_idx]))
-                    sigma[s_idx], grey[s_idx] = dens.float(), g.float()
-            out[a:b] = composite(rs, sigma.numpy(), grey.numpy(), backdrop[a:b], threads=threads)
-            self._count_traced(rs.counts, b - a)
-        return np.maximum(out, 0.0)
-
-    @property
-    def _marches_baked(self) -> bool:
-        """A baked field on the CPU: single pixels are marched in one compiled pass
-        (``field.baked_rays``) instead of ~100 tensor operations per call."""
-        from .baked import BakedField
-
-        return isinstance(self.field, BakedField) and self.device.type == "cpu"
-
-    def _march_baked(self, poses, tn, which, pixels) -> np.ndarray:
-        m = int(pixels.size)
-        self.rays_total += m
-        backdrop = self._backdrop_of(poses, which, pixels)
-        marcher = self._compiled_pass()
-        if marcher is None:                 # no cell can show anything: every ray sees the backdrop
-            return np.maximum(backdrop, 0.0).astype(np.float32)
-        dirs = self._camera_dirs()[pixels]
-        out = np.empty(m, np.float32)
-        for a in range(0, m, self.chunk):
-            b = min(a + self.chunk, m)
-            values, counts = marcher(poses, tn.numpy(), which[a:b], dirs[a:b], backdrop[a:b],
-                                     threads=torch.get_num_threads())
-            out[a:b] = values
+            if self._baked:
+                out[a:b], counts = compiled(poses, tn.numpy(), which[a:b], dirs[a:b], backdrop[a:b], threads=threads)
+            else:
+                out[a:b], counts = self._field_chunk(compiled, poses, tn, which[a:b], dirs[a:b], backdrop[a:b], threads)
             self._count_traced(counts, b - a)
         return np.maximum(out, 0.0)
+
+    def _field_chunk(self, placer, poses, tn, which, dirs, backdrop, threads):
+        """(grey (M,), samples per ray (M,)) of a chunk of single-pixel rays through the field: its
+        samples placed (``ray_samples.SamplePlacer``), the dynamic ones decoded at their ray's time
+        (faded at a flat world's region boundary), the static ones by the static field, composited."""
+        from .ray_samples import composite
+
+        rs = placer(poses, which, dirs, threads=threads)
+        x = torch.from_numpy(rs.x)
+        sigma, grey = torch.zeros(x.shape[0]), torch.zeros(x.shape[0])
+        with torch.no_grad():
+            dyn = torch.from_numpy(rs.is_dynamic)
+            d_idx = torch.nonzero(dyn).squeeze(1)
+            if d_idx.numel():
+                xd = x[d_idx]
+                t = tn[torch.from_numpy(which)[torch.from_numpy(rs.ray)[d_idx]]]
+                dens, g = self.field.decode(self.field.space_features(xd), t[:, None])
+                if self.flat_grey is not None:
+                    dens = dens * self.dynamic.inner_weight(xd)
+                sigma[d_idx], grey[d_idx] = dens.float(), g.float()
+            s_idx = torch.nonzero(~dyn).squeeze(1)
+            if s_idx.numel():
+                dens, g = self.field.decode_static(self.field.space_features(x[s_idx]))
+                sigma[s_idx], grey[s_idx] = dens.float(), g.float()
+        return composite(rs, sigma.numpy(), grey.numpy(), backdrop, threads=threads), rs.counts
+
+    @property
+    def _baked(self) -> bool:
+        from .baked import BakedField
+
+        return isinstance(self.field, BakedField)
 
     def _compiled_pass(self):
         """The compiled single-pixel pass of this set-up (made once): a baked field's
@@ -513,14 +501,14 @@ class FieldRenderer(CameraRenderer):
                          and self.occupancy.enabled else None,
                          dynamic=None if self.dynamic is None else self.dynamic.mask.numpy(),
                          flat=self.flat_grey is not None)
-            self._compiled = BakedMarcher(self.field, **setup) if self._marches_baked else SamplePlacer(**setup)
+            self._compiled = BakedMarcher(self.field, **setup) if self._baked else SamplePlacer(**setup)
         return self._compiled
 
     def warm_up(self) -> None:
         """Load the compiled single-pixel passes (``compiled_rays``, a baked field's marcher) now
         rather than in the first ``render_pixels`` (~0.4 s from numba's cache; compiled once per
         machine, ~10 s): the publisher calls it before a per-pixel run."""
-        if self._marches_baked or self.compiled_rays:
+        if self.compiled_rays:
             compiled = self._compiled_pass()
             if compiled is not None:
                 compiled.warm_up()
