@@ -1,5 +1,6 @@
-"""Single-pixel rays of a trained field on the CPU: the geometry in two compiled passes, the field
-in PyTorch (``FieldRenderer.render_pixels``, the publisher's per-pixel sampling of a moving camera).
+"""Single-pixel rays of a trained field on the CPU: the geometry compiled (samples placed, then
+composited), the field in PyTorch in between (``FieldRenderer.render_pixels``, the publisher's
+per-pixel sampling of a moving camera).
 
 The tensor path places every sample of every traced ray in the box around the cells it must reach,
 normalises it and looks it up in the occupancy grid and the dynamic region before it knows which
@@ -8,10 +9,10 @@ camera's render time on the fork's orbit (the field's own lookups and decoder: ~
 ``SamplePlacer`` makes each ray from its pose and pixel and walks its samples once, keeping only
 those the field is evaluated at (occupied ones; with a flat static world, the dynamic ones) in a
 slot per ray; the caller evaluates the field at them in one batch and ``composite`` sums each
-ray's kept samples in order. Every operation the tensor path does in
-float32 is done here in float32 in the same order (ray-box slabs, bin centres, points,
-normalisation, the nearest-cell lookups), so the same samples are kept at the same points; the
-compositing sums in float64 (equal to float32 rounding).
+ray's kept samples in order. Every operation the tensor path does in float32 is done here in
+float32 in the same order (ray-box slabs, bin centres, points, normalisation, the nearest-cell
+lookups), so the same samples are kept at the same points; the compositing sums in float64
+(equal to float32 rounding).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numba
 import numpy as np
 from numba import prange
 
+#: Cache the machine code next to this module (numba falls back to its user cache folder).
 _JIT = dict(cache=True, nogil=True, parallel=True)
 f32 = np.float32
 
