@@ -222,3 +222,42 @@ def test_motion_guard_keeps_a_fast_camera_s_events(tmp_path):
     assert guarded.pixels_rendered > blind.pixels_rendered > 0
     assert abs(guarded_ev.size - dense_ev.size) < 0.25 * abs(blind_ev.size - dense_ev.size), \
         (guarded_ev.size, blind_ev.size, dense_ev.size)
+
+
+def test_the_chunks_pose_grid_and_the_chunk_length_change_cost_not_events(tmp_path, monkeypatch):
+    """Per-pixel sampling of a moving camera looks its poses up on the chunk's sampling grid (made at
+    once, ``_plan_poses``) instead of interpolating the trajectory at every render: the same events as
+    without the grid; and chunks that are whole multiples of ``max_step_ns`` give the same events
+    whatever their length (fewer, larger renders: the offline lever)."""
+    from evdnerf_ros.eval.published import _write_trajectory
+    from evdnerf_ros.geometry.pose_track import PoseTrack
+    from evdnerf_ros.nodes import event_publisher
+    from evdnerf_ros.train.run import TrainedRun
+
+    run = _changing_run(tmp_path)
+    t, T = TrainedRun.load(run).orbit(10**9)
+    moving = _write_trajectory(tmp_path / "moving.yaml", t[:2], T[:2])
+    kw = dict(trajectory=str(moving), duration=0.04, trajectory_max_gap=2.0, adaptive=True, max_step_ns=5_000_000)
+    calls = []
+    real = PoseTrack.poses
+    monkeypatch.setattr(PoseTrack, "poses", lambda self, times: calls.append(len(times)) or real(self, times))
+    grid, grid_ev = _publish(run, chunk=0.01, **kw)
+    with_grid = len(calls)
+    monkeypatch.setattr(event_publisher, "POSE_GRID_MAX", 0)
+    calls.clear()
+    plain, plain_ev = _publish(run, chunk=0.01, **kw)
+    assert grid_ev.size > 50 and plain.renders == grid.renders > 8
+    np.testing.assert_array_equal(grid_ev, plain_ev)
+    # four chunks, each rendered in a few calls that no longer interpolate: one grid per chunk instead
+    assert len(calls) - with_grid >= 4, (with_grid, len(calls))
+    monkeypatch.setattr(event_publisher, "POSE_GRID_MAX", 1 << 14)
+    batches = []
+    real_render = event_publisher.EventPublisher.render_pixels
+    monkeypatch.setattr(event_publisher.EventPublisher, "render_pixels",
+                        lambda self, t_ns, pixels: batches.append(pixels.size) or real_render(self, t_ns, pixels))
+    for chunk in (0.01, 0.02):
+        long, long_ev = _publish(run, chunk=chunk, **kw)
+        np.testing.assert_array_equal(long_ev, grid_ev)
+        batches.append(None)
+    split = batches.index(None)
+    assert len(batches) - split - 1 < split         # the longer chunks: fewer, larger render calls

@@ -117,6 +117,13 @@ def test_field_renderer_time_mapping_and_leave_out(tmp_path):
     assert r.normalized_time(10**18) == 1.0
     shifted = run.renderer(CAM, duration_ns=2_000_000_000, t_origin_ns=10**12)
     assert shifted.normalized_time(10**12 + 500_000_000) == 0.25
+    # many times at once (single-pixel batches), as one by one; float times are refused
+    many = np.array([10**12 - 5, 10**12, 10**12 + 333_333_333, 10**12 + 2_000_000_000, 10**18], np.int64)
+    np.testing.assert_array_equal(shifted.normalized_times(many),
+                                  np.float32([shifted.normalized_time(int(t)) for t in many]))
+    assert shifted.normalized_times(np.zeros(0, np.int64)).shape == (0,)
+    with pytest.raises(InputError, match="int64 nanoseconds"):
+        shifted.normalized_times(np.array([0.5]))
     with pytest.raises(InputError, match="positive whole number of nanoseconds"):
         run.renderer(CAM, duration_ns=0)
     full = run.renderer(CAM, leave_out=False)

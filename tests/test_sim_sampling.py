@@ -392,6 +392,16 @@ def test_box_travel_bounds_what_a_moving_camera_sees_move():
     real = np.linalg.norm(np.diff(np.array(uv), axis=0), axis=1).sum()
     assert 0.0 < real <= travel.total_px
     assert travel(2_000_000, 5_000_000) <= travel.total_px
+    # many pieces at once (the per-pixel sampler's guard) equal the pieces one by one, and a plain
+    # callable is asked piece by piece
+    from evdnerf_ros.sim.motion import travels
+
+    a = np.array([0, 1_500_000, 2_000_000, 9_000_000, 10_000_000], np.int64)
+    b = np.array([10_000_000, 1_600_000, 5_000_000, 10_000_000, 10_000_000], np.int64)
+    one_by_one = [travel(int(x), int(y)) for x, y in zip(a, b)]
+    np.testing.assert_array_equal(travels(travel, a, b), one_by_one)
+    np.testing.assert_array_equal(travels(lambda x, y: travel(x, y), a, b), one_by_one)
+    assert travels(travel, a[:0], b[:0]).shape == (0,)
 
 
 def test_per_pixel_motion_guard_splits_only_where_the_content_can_reach():

@@ -170,6 +170,14 @@ class FieldRenderer(CameraRenderer):
                              f"got {t_ns!r}") from None
         return float(np.clip((t - self.t_origin_ns) / self.duration_ns, 0.0, 1.0))
 
+    def normalized_times(self, t_ns) -> np.ndarray:
+        """(K,) float32 ``normalized_time`` of each of the scene times ``t_ns`` ((K,) int64 ns)."""
+        t = np.asarray(t_ns).reshape(-1)
+        if t.size and t.dtype.kind not in "iu":
+            raise InputError(f"{self.source}: render times must be int64 nanoseconds; got an array of {t.dtype}")
+        span = (t.astype(np.int64) - np.int64(self.t_origin_ns)) / float(self.duration_ns)
+        return np.clip(span, 0.0, 1.0).astype(np.float32)
+
     # ------------------------------------------------------------------ plan
     def _plan(self, T) -> tuple[list[_ChunkPlan], torch.Tensor]:
         """The chunk plans of pose ``T`` and the image every pixel starts from: what each ray
@@ -397,8 +405,7 @@ class FieldRenderer(CameraRenderer):
                             or which.max() >= poses.shape[0]):
             raise InputError(f"{self.source}: a pixel index is outside 0..{n_pix - 1} or a pose index outside "
                              f"0..{poses.shape[0] - 1}")
-        tn = torch.tensor([self.normalized_time(t) for t in np.asarray(t_ns).reshape(-1).tolist()],
-                          dtype=torch.float32, device=self.device)
+        tn = torch.from_numpy(self.normalized_times(t_ns)).to(self.device)
         if tn.numel() != poses.shape[0]:
             raise InputError(f"{self.source}: {tn.numel()} times for {poses.shape[0]} poses")
         if self.compiled_rays:

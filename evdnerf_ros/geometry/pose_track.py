@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import InputError
 from .poses import check_increasing_times
-from .rotations import matrix_to_quat, quat_to_matrix, slerp
+from .rotations import matrix_to_quat, quat_conj, quat_exp, quat_log, quat_mul, quat_normalize, quat_to_matrix
 
 
 class PoseTrack:
@@ -33,7 +33,10 @@ class PoseTrack:
         for i in range(1, len(q)):               # one hemisphere: slerp takes the short arc
             if np.dot(q[i], q[i - 1]) < 0:
                 q[i] = -q[i]
-        self.q = q
+        self.q = quat_normalize(q)
+        # each segment's rotation as a log (slerp's shortest arc, the hemisphere fixed above), made
+        # once: a pose is then one exp and one product
+        self.rel = quat_log(quat_mul(quat_conj(self.q[:-1]), self.q[1:]))
 
     @property
     def span_ns(self) -> tuple[int, int]:
@@ -53,6 +56,6 @@ class PoseTrack:
         u = (t - self.t[i]) / (self.t[i + 1] - self.t[i]).astype(np.float64)
         T = np.zeros((t.size, 4, 4))
         T[:, 3, 3] = 1.0
-        T[:, :3, :3] = quat_to_matrix(slerp(self.q[i], self.q[i + 1], u))
+        T[:, :3, :3] = quat_to_matrix(quat_mul(self.q[i], quat_exp(self.rel[i] * u[:, None])))
         T[:, :3, 3] = self.p[i] + u[:, None] * (self.p[i + 1] - self.p[i])
         return T

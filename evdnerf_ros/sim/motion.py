@@ -56,8 +56,12 @@ class ImageTravel:
         return i, j
 
     def __call__(self, a: int, b: int) -> float:
+        return float(self.many(a, b))
+
+    def many(self, a, b) -> np.ndarray:
+        """The travel of each piece [a[k], b[k]] (int64 arrays) at once (``travels``)."""
         i, j = self._span(a, b)
-        return float(self.cumulative[j] - self.cumulative[i])
+        return self.cumulative[j] - self.cumulative[i]
 
     def reach(self, a, b) -> np.ndarray | None:
         """(N, 4) x0 y0 x1 y1 (pixels, inclusive; +-inf: anywhere) of the pieces [a[k], b[k]]:
@@ -124,6 +128,15 @@ def image_travel(scene, camera, pose_at: Callable[[int], np.ndarray], t0: int, t
             steps[n] = max(min(float(ang.max(initial=0.0)), math.pi), cam_rot) * px_per_rad
         prev = cur
     return ImageTravel(times, np.cumsum(steps))
+
+
+def travels(travel_px, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(K,) image travel bounds of the pieces [a[k], b[k]]: ``travel_px.many`` where it has one
+    (``ImageTravel``: one vectorised pass), else ``travel_px(a, b)`` piece by piece."""
+    many = getattr(travel_px, "many", None)
+    if many is not None:
+        return np.asarray(many(np.asarray(a, np.int64), np.asarray(b, np.int64)), np.float64)
+    return np.array([travel_px(int(x), int(y)) for x, y in zip(a, b)], np.float64)
 
 
 def box_travel(box, camera, times: np.ndarray, poses: np.ndarray, *, infinity: bool = True) -> ImageTravel:

@@ -58,6 +58,7 @@ import numpy as np
 from ..errors import InputError
 from ..events.types import empty_events
 from .generator import EventGenerator, _as_time
+from .motion import travels
 from ..events.logmap import log_intensity
 
 #: Default largest step: ESIM renders at least at 30 Hz.
@@ -365,7 +366,7 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
                 # one travel per distinct piece (a flat key: np.unique along an axis is slow)
                 keys, which = np.unique(lo * np.int64(n + 1) + hi, return_inverse=True)
                 ta, tb = times(keys // (n + 1)), times(keys % (n + 1))
-                far = np.array([travel_px(int(a), int(b)) > travel_limit for a, b in zip(ta, tb)])
+                far = travels(travel_px, ta, tb) > travel_limit
                 stats.motion_splits += int(far.sum())
                 forced = far[which.ravel()]
                 box = reach_px(ta, tb) if reach_px is not None and forced.any() else None
@@ -429,7 +430,9 @@ def _feed_knots(generator: EventGenerator, pix, j, L, j_end: int, times, chunks,
     holding its last (``EventGenerator.step_knots``: no other pixel's time splits its segments);
     return the last frame (flat). ``frames_fed`` and the steps count the distinct knot times
     after the first and ``j_end``, as a feed of one frame per time would."""
-    rows = np.unique(np.append(j, j_end))
+    rows = np.flatnonzero(np.bincount(j, minlength=j_end + 1))      # the distinct grid indices (0 <= j <= j_end)
+    if not rows.size or rows[-1] != j_end:
+        rows = np.append(rows, j_end)
     t_rows = times(rows)
     later = j != rows[0]
     ev = generator.step_knots(pix[later], times(j[later]), L[later], int(t_rows[-1]))
