@@ -399,6 +399,33 @@ def test_a_trained_run_without_trajectory_orbits_its_training_views(tmp_path):
         publish(tmp_path, name="c", run_dir=str(tmp_path / "old"), **{"camera.width": 8, "camera.height": 8})
 
 
+def test_an_open_ring_is_swept_there_and_back_not_closed_through_the_scene():
+    """A turntable's half circle of views (a 180 degree gap): the default orbit goes along the views
+    and back, never cutting across the gap (through the scene: the straight line from the last view
+    to the first passes 0.5 m from the centre here); a ring spread round is still closed."""
+    from evdnerf_ros.geometry.pose_track import PoseTrack
+    from evdnerf_ros.train.run import TrainedRun
+
+    def orbit(deg, centre=(0.2, -0.1, 0.3)):
+        run = TrainedRun.__new__(TrainedRun)
+        run.ring = np.stack([look_at([centre[0] + 3 * np.cos(a), centre[1] + 3 * np.sin(a), 1.0], centre)
+                             for a in np.radians(deg)])
+        run.checkpoint_path = "run"
+        t, T = run.orbit(80_000_000)
+        dense = PoseTrack(t, T).poses(np.linspace(0, 80_000_000, 401).astype(np.int64))
+        az = np.degrees(np.arctan2(T[:, 1, 3] - centre[1], T[:, 0, 3] - centre[0]))
+        return az, np.linalg.norm(dense[:, :2, 3] - np.array(centre[:2]), axis=1)
+
+    az, dist = orbit([120, 0, 180, 30, 90])              # stored out of order
+    np.testing.assert_allclose(az, [0, 30, 90, 120, 180, 120, 90, 30, 0], atol=1e-9)
+    assert dist.min() > 3 * np.cos(np.radians(30)) - 1e-9          # the widest chord is 60 degrees
+    az, dist = orbit([0, 90, 180, 270])                              # spread round: closed
+    np.testing.assert_allclose(np.unwrap(np.radians(az)) % (2 * np.pi),
+                               np.radians([270, 0, 90, 180, 270]), atol=1e-9)
+    az, _ = orbit([0, 120, 240])                                    # three views: still a closed ring
+    assert az.size == 4
+
+
 def test_a_paced_run_that_falls_behind_real_time_says_so_once_with_the_lever(capsys, monkeypatch):
     """realtime_factor > 0 is a schedule: a run more than LATE_WARN_S behind it warns once, naming the
     lever that buys speed for its error; an unpaced run (0) has no schedule to miss."""

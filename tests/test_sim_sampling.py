@@ -392,6 +392,21 @@ def test_box_travel_bounds_what_a_moving_camera_sees_move():
     real = np.linalg.norm(np.diff(np.array(uv), axis=0), axis=1).sum()
     assert 0.0 < real <= travel.total_px
     assert travel(2_000_000, 5_000_000) <= travel.total_px
+    # a camera beside a long rod, inside its bounding sphere but 0.9 m from the rod: a finite bound (the
+    # distance to the box, not to its sphere), still above what the rod's points really travel
+    rod = np.array([[-2.0, -0.05, -0.05], [2.0, 0.05, 0.05]])
+    sliding = np.stack([look_at([0.01 * k, -0.95, 0.0], [0.01 * k, 0.0, 0.0]) for k in range(times.size)])
+    beside = box_travel(rod, cam, times, sliding, infinity=False)
+    assert 0.0 < beside.total_px < np.pi * _magnification(cam) / 10
+    pts = np.concatenate([np.stack(np.meshgrid(*zip(*rod), indexing="ij"), -1).reshape(8, 3),
+                          np.c_[np.linspace(-0.5, 0.5, 11), np.zeros(11), np.zeros(11)]])
+    uv = []
+    for T in sliding:
+        x = (np.c_[pts, np.ones(len(pts))] @ np.linalg.inv(T).T)[:, :3]             # camera frame
+        uv.append(np.c_[cam.fx * x[:, 0] / x[:, 2] + cam.cx, cam.fy * x[:, 1] / x[:, 2] + cam.cy])
+    seen = (np.array(uv)[0, :, 0] > 0) & (np.array(uv)[0, :, 0] < cam.width)
+    real = np.linalg.norm(np.diff(np.array(uv)[:, seen], axis=0), axis=2).sum(axis=0).max()
+    assert 0.0 < real <= beside.total_px
     # many pieces at once (the per-pixel sampler's guard) equal the pieces one by one, and a plain
     # callable is asked piece by piece
     from evdnerf_ros.sim.motion import travels

@@ -145,15 +145,15 @@ def box_travel(box, camera, times: np.ndarray, poses: np.ndarray, *, infinity: b
     ``poses`` (K, 4, 4) T_world_cam at ``times`` (K,) int64 (``motion_sample_times``; the pose
     track's knots among them).  The bound per interval is :func:`image_travel`'s for one object
     that does not move: the largest move of a box corner in the camera frame over the smallest
-    distance to the box's bounding sphere, or (``infinity``) the camera's rotation angle,
-    whichever is larger."""
+    distance to the box, or (``infinity``) the camera's rotation angle, whichever is larger."""
     lo, hi = np.asarray(box, np.float64).reshape(2, 3)
     corners = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(8, 3)
-    centre, radius = (lo + hi) / 2.0, float(np.linalg.norm(hi - lo)) / 2.0
     poses = np.asarray(poses, np.float64)
     Rc, c = poses[:, :3, :3], poses[:, :3, 3]
     pc = np.einsum("tkj,tji->tki", corners[None] - c[:, None, :], Rc)         # (K, 8, 3) camera frame
-    near = np.linalg.norm(centre - c, axis=1) - radius
+    # the camera's distance to the box itself (0 inside): no point of it is nearer (its bounding
+    # sphere's, the looser bound, gave a camera passing beside a long box a travel of pi)
+    near = np.linalg.norm(np.maximum(np.maximum(lo - c, c - hi), 0.0), axis=1)
     move = np.linalg.norm(pc[1:] - pc[:-1], axis=2).max(axis=1)
     nearest = np.minimum(near[1:], near[:-1])
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -43,6 +43,26 @@ REQUIRED_KEYS = ("iteration", "config", "field", "box")
 RETRAIN = "train again into this folder (`evdnerf train TRAIN.h5 -o RUN --overwrite`)"
 
 
+#: A ring of training views with a gap in azimuth wider than this is open (``TrainedRun.orbit``): a
+#: turntable's half circle (a 180 degree gap) is, a ring of three or more views spread round is not.
+OPEN_RING_RAD = float(np.radians(135.0))
+
+
+def _looked_at(poses: np.ndarray) -> np.ndarray:
+    """The point nearest to the optical axes of the (K, 4, 4) T_world_cam ``poses`` (least squares):
+    where a ring of views looks; their centre where the axes are (nearly) parallel."""
+    c, z = poses[:, :3, 3], poses[:, :3, 2]
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for ci, zi in zip(c, z / np.linalg.norm(z, axis=1, keepdims=True)):
+        P = np.eye(3) - np.outer(zi, zi)          # removes the component along the axis
+        A += P
+        b += P @ ci
+    if np.linalg.cond(A) > 1e8:
+        return c.mean(axis=0)
+    return np.linalg.solve(A, b)
+
+
 class TrainedRun:
     """What ``evdnerf train`` left in a run folder (module docstring)."""
 
@@ -181,14 +201,23 @@ class TrainedRun:
     def orbit(self, duration_ns: int) -> tuple[np.ndarray, np.ndarray]:
         """Poses (t (M,) int64 ns from 0, T_world_cam (M, 4, 4)) going once round the training
         views in azimuth order over ``duration_ns`` and back to the first: the trajectory a run
-        is published along when none is given. CheckpointError for runs that did not record it."""
+        is published along when none is given. A ring open by more than ``OPEN_RING_RAD`` (a
+        turntable's half circle) is swept along its views and back: closing it would cut straight
+        across the gap, through the scene. CheckpointError for runs that did not record it."""
         if self.ring is None or len(self.ring) < 2:
             raise CheckpointError(f"{self.checkpoint_path}: records no ring of static training views (trained "
                                   "before they were recorded, or with fewer than 2); give a trajectory")
-        centre = self.ring[:, :3, 3].mean(axis=0)
-        d = self.ring[:, :3, 3] - centre
-        order = np.argsort(np.arctan2(d[:, 1], d[:, 0]))
-        T = self.ring[np.r_[order, order[:1]]]
+        d = self.ring[:, :3, 3] - _looked_at(self.ring)
+        azimuth = np.arctan2(d[:, 1], d[:, 0])
+        order = np.argsort(azimuth)
+        a = azimuth[order]
+        gaps = np.diff(np.r_[a, a[0] + 2.0 * np.pi])        # to each next view; the last closes the ring
+        widest = int(np.argmax(gaps))
+        if gaps[widest] > OPEN_RING_RAD:
+            arc = np.roll(order, -(widest + 1))              # from one end of the arc to the other
+            T = self.ring[np.r_[arc, arc[-2::-1]]]
+        else:
+            T = self.ring[np.r_[order, order[:1]]]
         t = np.linspace(0, int(duration_ns), len(T)).round().astype(np.int64)
         return t, T
 
