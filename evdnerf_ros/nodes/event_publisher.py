@@ -312,7 +312,7 @@ class EventPublisher(Node):
             return None
         knots = self.track.t[(self.track.t > t0) & (self.track.t < t1)]
         times = motion_sample_times(t0, t1, self.params["min_step_ns"], knots)
-        return box_travel(box, self.camera, times, self.track.poses(times) @ self.T_robot_cam,
+        return box_travel(box, self.camera, times, self._camera_poses(times),
                           infinity=self.source.shows_infinity)
 
     def render_pixels(self, t_ns: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -334,14 +334,19 @@ class EventPublisher(Node):
         self._pose_grid = (times, self.track.poses(times) @ self.T_robot_cam)
 
     def _camera_poses(self, times: np.ndarray) -> np.ndarray:
-        """(K, 4, 4) camera poses at the sorted distinct trajectory times ``times``: from the chunk's
-        grid (``_plan_poses``) when they are all on it, else interpolated."""
+        """(K, 4, 4) camera poses at the sorted distinct trajectory times ``times``: those on the
+        chunk's grid (``_plan_poses``) looked up, the others interpolated."""
         grid = self._pose_grid
-        if grid is not None and times.size:
-            k = np.searchsorted(grid[0], times)
-            if k[-1] < grid[0].size and np.array_equal(grid[0][k], times):
-                return grid[1][k]
-        return self.track.poses(times) @ self.T_robot_cam
+        if grid is None or not times.size:
+            return self.track.poses(times) @ self.T_robot_cam
+        k = np.minimum(np.searchsorted(grid[0], times), grid[0].size - 1)
+        on = grid[0][k] == times
+        if on.all():
+            return grid[1][k]
+        poses = np.empty((times.size, 4, 4))
+        poses[on] = grid[1][k[on]]
+        poses[~on] = self.track.poses(times[~on]) @ self.T_robot_cam
+        return poses
 
     def _speed_hint(self, moving: bool) -> str:
         """The lever that buys this run the most speed for its error (bench/bench_publish.py)."""
@@ -465,13 +470,13 @@ class EventPublisher(Node):
                 next_info = t + info_every
             info_subs = subs
             # a moving camera's image travel: the guard's bound, and per pixel where anything can change
+            if per_pixel and moving:
+                self._plan_poses(t, tb, p["min_step_ns"])
             travel = self._field_travel(t, tb) if guard or (per_pixel and moving) else None
             adaptive = dict(tolerance_c=p["tolerance_c"], min_step_ns=p["min_step_ns"],
                             max_step_ns=min(p["max_step_ns"], tb - t), travel_px=travel if guard else None,
                             max_travel_px=p["max_travel_px"])
             if per_pixel:
-                if moving:
-                    self._plan_poses(t, tb, p["min_step_ns"])
                 events, st = simulate_pixels(self.render_pixels, t, tb, self.generator, **adaptive,
                                              reach_px=None if travel is None else travel.reach)
             elif p["adaptive"]:
