@@ -26,7 +26,8 @@ Writes ``publish.json`` and ``publish.png`` into ``--out``.
   64x64 publishes along a novel static view and along its orbit; each publisher lever (node
   parameters: leave-out, static reuse, static world, per-pixel sampling, min step, chunk,
   baking, tolerance) against the simulator's events along the same path (event-image PSNR, zero
-  floor, true render, counts per polarity, first-event timing) and its RTF; RTF against
+  floor, true render, counts per polarity, first-event timing) and its RTF (a short publish's: the
+  median of up to 5 runs within 3 s of publishing); RTF against
   resolution for the static view and the orbit. ``--backbone hinge``: the same with a ``hinge`` run (stored as
   ``published_vs_true_hinge``, drawn beside the planes run's).
 * **DDS throughput**: a writer process and a reader process on loopback (Cyclone DDS,
@@ -200,6 +201,10 @@ SKIP = {"static": ("static world field", "whole images", "motion guard"), "orbit
 RESOLUTION_LEVERS = {"static": ("static reuse (default)", "baked 64"), "orbit": ("static reuse (default)", "baked 64")}
 
 
+#: Repeats of a short publish in the published-vs-true part (the median RTF is kept).
+REPEATS, REPEAT_WALL_S = 5, 3.0
+
+
 def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: float = 0.0,
                     backbone: str = "planes") -> dict:
     """Published events against the simulator's along the same path (eval.published), for each
@@ -220,8 +225,17 @@ def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: 
            "resolution": []}
 
     def one(path, params, ref, **kw):
+        """One lever's publish, repeated (up to ``REPEATS`` runs within ``REPEAT_WALL_S`` of publishing)
+        where a run is short enough for the machine's noise to matter: its RTF is the median."""
         r = published_vs_true(run, h5, n_windows=windows, static=path == "static", duration_ns=spans[path],
                               publisher=params, true_reference=ref, log=lambda m: print(m, flush=True), **kw)
+        rtfs, walls = [r["publisher"]["rtf"]], [r["publisher"]["wall_s"]]
+        while len(rtfs) < REPEATS and sum(walls) < REPEAT_WALL_S:
+            again = published_vs_true(run, h5, n_windows=windows, static=path == "static", duration_ns=spans[path],
+                                      publisher=params, true_reference=r["reference"], log=lambda m: None, **kw)
+            rtfs.append(again["publisher"]["rtf"])
+            walls.append(again["publisher"]["wall_s"])
+        r["publisher"].update(rtf=float(np.median(rtfs)), rtf_runs=rtfs)
         return r
 
     for path in ("static", "orbit"):

@@ -56,7 +56,7 @@ OPTIONS = SimulationOptions(views=4, val_views=2, moving_views=1, resolution=(96
 TRAIN_CONFIG = {"windows": [16, 32], "window_switch": [0.5], "n_samples": 32, "eval_every": 100}
 TRAIN_MINUTES = 2.0
 #: The published orbit plays the run back from a grid of this many vertices per axis
-#: (``bake_resolution``): 2.5x the field's own speed on the fork's orbit for none of its events PSNR.
+#: (``bake_resolution``): 3.5x the field's own speed on the fork's orbit for none of its events PSNR.
 PUBLISH_BAKE = 64
 #: ... and renders it 0.1 s at a time: a bag, nothing paced, so longer chunks only batch the renders
 #: (fewer, larger calls; the same events as the node's default 10 ms chunks).

@@ -352,7 +352,7 @@ class EventPublisher(Node):
         """The lever that buys this run the most speed for its error (bench/bench_publish.py)."""
         p = self.params
         if p["run_dir"] and not p["bake_resolution"]:
-            return ("bake_resolution:=64 plays the trained field back from a grid, 2.5x faster on the fork's orbit at 64x64 "
+            return ("bake_resolution:=64 plays the trained field back from a grid, 3.5x faster on the fork's orbit at 64x64 "
                     "for a few % fewer events (its error: the publish benchmark)")
         if p["adaptive"] and p["min_step_ns"] < 1_000_000:
             return "a larger min_step_ns renders fewer times, at the cost of the finest event timing"
