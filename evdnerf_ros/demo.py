@@ -284,7 +284,7 @@ def _publish_orbit(run_dir: Path, bag: Path, log) -> dict:
     rep = run_node(("--ros-args", "--log-level", "warn"), dds=False,
                    overrides={"run_dir": str(run_dir), "bag": str(bag), "realtime_factor": 0.0,
                               "bake_resolution": PUBLISH_BAKE, "chunk": PUBLISH_CHUNK_S})
-    log(f"published {rep.sim_seconds:.3f} s of events ({rep.events} events) a camera circling the training views "
+    log(f"published {rep.sim_seconds:.3f} s of events ({rep.events} events) a camera going round the training views "
         f"would see into {bag.name}/ at {rep.rtf:.2f}x real time (the field baked at {PUBLISH_BAKE} vertices per axis "
         f"in {rep.source_seconds:.1f} s)")
     return {"bag": bag.name, "events": rep.events, "messages": rep.messages, "sim_seconds": rep.sim_seconds,

@@ -570,6 +570,25 @@ def test_knots_bad_input_is_refused_and_changes_nothing():
     assert gen.step_knots(*ok, 20).size == 4
 
 
+def test_knots_are_sorted_alike_by_one_key_and_over_spans_too_long_for_it():
+    """Knots sort pixel-major, then by time, by one int64 key; over a span too long for that key
+    (pixels x span >= 2**62) by two keys: the same order and the same refusal of a repeated knot."""
+    rng = np.random.default_rng(3)
+    pix = rng.integers(0, 8, 200)
+    t = rng.permutation(np.arange(1, 201, dtype=np.int64))
+    L = rng.normal(size=200)
+    out = []
+    for t_end in (1_000, 1 << 61):                               # 8 x 2**61 >= 2**62: the two-key sort
+        gen = EventGenerator(4, 2)
+        gen.reset_log(np.zeros((2, 4)), 0)
+        out.append(gen._check_knots(pix, t, L, t_end))
+        with pytest.raises(InputError, match="two knots at one time"):
+            gen._check_knots(np.r_[pix, pix[7]], np.r_[t, t[7]], np.r_[L, 0.0], t_end)
+    for a, b in zip(*out):
+        np.testing.assert_array_equal(a, b)
+    assert np.all(np.diff(out[0][0]) >= 0) and np.all(np.diff(out[0][1])[np.diff(out[0][0]) == 0] > 0)
+
+
 def test_knots_at_the_extremes_of_time():
     """A 1 ns segment crossing ten levels stamps them all at its end; a segment of 2**53 ns (the
     longest interval) places its crossings within a few ns of the exact times."""

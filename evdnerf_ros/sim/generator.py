@@ -399,7 +399,8 @@ class EventGenerator:
             twice = np.any(key[1:] == key[:-1])
         else:
             order = np.lexsort((t, pix))
-            twice = np.any((pix[order][1:] == pix[order][:-1]) & (t[order][1:] == t[order][:-1]))
+            p, tt = pix[order], t[order]
+            twice = np.any((p[1:] == p[:-1]) & (tt[1:] == tt[:-1]))
         if twice:
             raise InputError(f"{where}: a pixel has two knots at one time")
         return pix[order], t[order], L[order].astype(np.float64)
