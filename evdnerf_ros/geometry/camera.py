@@ -116,6 +116,23 @@ def look_at(position, target, up=WORLD_UP) -> np.ndarray:
     return T
 
 
+def common_look_at(poses) -> np.ndarray:
+    """(3,) the point nearest to the optical axes (+z, OpenCV) of the (K, 4, 4) T_world_cam ``poses``,
+    least squares: where a ring of views looks; their centres' mean where the axes do not fix one."""
+    poses = np.asarray(poses, np.float64)
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, z in zip(poses[:, :3, 3], poses[:, :3, 2]):
+        d = z / np.linalg.norm(z)
+        P = np.eye(3) - np.outer(d, d)          # removes the component along the axis
+        A += P
+        b += P @ c
+    try:
+        return np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        return poses[:, :3, 3].mean(axis=0)
+
+
 def ring_poses(views: int, radius: float, elevation_deg: float, look_at_point=(0, 0, 0),
                offset_deg: float = 0.0) -> list[np.ndarray]:
     """T_world_cam of ``views`` cameras evenly spaced on a ring (see module docstring)."""

@@ -25,7 +25,7 @@ import torch
 from ..errors import InputError
 from ..events.slicing import window_edges
 from ..field import camera_rays
-from ..geometry.camera import PinholeCamera
+from ..geometry.camera import PinholeCamera, common_look_at
 
 
 def camera_of(K: np.ndarray, width: int, height: int) -> PinholeCamera:
@@ -40,20 +40,8 @@ def default_box(train_set, fraction: float = 0.35) -> np.ndarray:
     sb = getattr(train_set, "scene_bounds", None)
     if sb is not None:
         return np.asarray(sb, np.float64).reshape(2, 3)
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
-    centres = []
-    for v in train_set.views:
-        T = train_set.pose(v)
-        c, d = T[:3, 3], T[:3, 2] / np.linalg.norm(T[:3, 2])   # OpenCV: +z looks forward
-        P = np.eye(3) - np.outer(d, d)
-        A += P
-        b += P @ c
-        centres.append(c)
-    try:
-        target = np.linalg.solve(A, b)
-    except np.linalg.LinAlgError:
-        target = np.mean(centres, axis=0)
+    centres = [train_set.pose(v)[:3, 3] for v in train_set.views]
+    target = common_look_at([train_set.pose(v) for v in train_set.views])
     half = fraction * float(np.mean([np.linalg.norm(c - target) for c in centres]))
     if not half > 0:
         half = 1.0

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..geometry.camera import PinholeCamera
+from ..geometry.camera import PinholeCamera, common_look_at
 from ..geometry.poses import check_rigid
 from .checkpoint import CheckpointError, load_checkpoint
 from .config import TrainConfig
@@ -46,21 +46,6 @@ RETRAIN = "train again into this folder (`evdnerf train TRAIN.h5 -o RUN --overwr
 #: A ring of training views with a gap in azimuth wider than this is open (``TrainedRun.orbit``): a
 #: turntable's half circle (a 180 degree gap) is, a ring of three or more views spread round is not.
 OPEN_RING_RAD = float(np.radians(135.0))
-
-
-def _looked_at(poses: np.ndarray) -> np.ndarray:
-    """The point nearest to the optical axes of the (K, 4, 4) T_world_cam ``poses`` (least squares):
-    where a ring of views looks; their centre where the axes are (nearly) parallel."""
-    c, z = poses[:, :3, 3], poses[:, :3, 2]
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
-    for ci, zi in zip(c, z / np.linalg.norm(z, axis=1, keepdims=True)):
-        P = np.eye(3) - np.outer(zi, zi)          # removes the component along the axis
-        A += P
-        b += P @ ci
-    if np.linalg.cond(A) > 1e8:
-        return c.mean(axis=0)
-    return np.linalg.solve(A, b)
 
 
 class TrainedRun:
@@ -207,7 +192,7 @@ class TrainedRun:
         if self.ring is None or len(self.ring) < 2:
             raise CheckpointError(f"{self.checkpoint_path}: records no ring of static training views (trained "
                                   "before they were recorded, or with fewer than 2); give a trajectory")
-        d = self.ring[:, :3, 3] - _looked_at(self.ring)
+        d = self.ring[:, :3, 3] - common_look_at(self.ring)
         azimuth = np.arctan2(d[:, 1], d[:, 0])
         order = np.argsort(azimuth)
         a = azimuth[order]
