@@ -18,8 +18,15 @@ the chosen combination.
 per run; the final scores add the pooled margin and the moving camera (flat static world, as
 ``evdnerf eval`` scores it).
 
-Usage: python bench/bench_quality.py [--full | --demo] [--levers a,b,...] [--seconds S] [--parallel N]
-       [--replot]   -> bench/results/quality_proxy.{json,png}, quality.{json,png} or quality_demo.{json,png}
+``--rig TRAIN.h5``: a training set the demo made on the virtual rig (``evdnerf demo -o OUT`` writes
+``OUT/train.h5``: 48x36, 9 training + 4 validation turntable views), the demo's training config and
+field (``hinge``), 2 minutes per run, scored on every validation view (pooled, as the demo's
+verdict). A lever may leave training views out (``"_drop_views": [view indices]``, the set's view
+order): the same capture and validation views with fewer training views.
+
+Usage: python bench/bench_quality.py [--full | --demo | --rig TRAIN.h5] [--levers a,b,...] [--seconds S]
+       [--parallel N] [--replot]
+       -> bench/results/quality_proxy.{json,png}, quality.{json,png}, quality_demo.{json,png} or quality_rig.{json,png}
 """
 
 from __future__ import annotations
@@ -83,6 +90,16 @@ LEVERS = {
     "rigid-lr-decay-0.1": {"backbone": "rigid", "lr_final": 0.1},
     "rigid-windows-32": {"backbone": "rigid", "windows": [32], "window_switch": []},
 }
+LEVERS.update({
+    # the virtual rig's demo set (--rig): all 9 training views of the 13-view capture, or 5 of them
+    # 45 deg apart (0, 45, 90, 135, 180), the validation views the same
+    "rig-9-training-views": {"backbone": "hinge"},
+    "rig-5-training-views": {"backbone": "hinge", "_drop_views": [1, 4, 7, 10]},
+    "rig-9-training-views-seed-1": {"backbone": "hinge", "seed": 1},
+    "rig-5-training-views-seed-1": {"backbone": "hinge", "_drop_views": [1, 4, 7, 10], "seed": 1},
+})
+RIG_LEVERS = ["rig-9-training-views", "rig-5-training-views", "rig-9-training-views-seed-1",
+              "rig-5-training-views-seed-1"]
 #: --demo's levers by default (the demo's config already sets windows and 32 samples).
 DEMO_LEVERS = ["baseline", "lr-0.01", "lr-0.005", "spans-0.8", "samples-48", "time-res-32", "event-rays-0.8"]
 
@@ -92,6 +109,7 @@ FULL = {"views": 18, "val_views": 18, "resolution": 128, "seconds": 300.0, "thre
         "eval_views": 4, "final_views": {1: 4, 4: 4, 8: 4}}
 DEMO = {"scene": "fork-demo", "seconds": 120.0, "threads": 1, "eval_views": 2, "final_views": {1: 2, 4: 2},
         "moving": True}
+RIG = {"seconds": 120.0, "threads": 1, "eval_views": 4, "final_views": {1: 4, 4: 4}}
 
 
 def demo_setting() -> dict:
@@ -102,10 +120,41 @@ def demo_setting() -> dict:
             "base": dict(demo.TRAIN_CONFIG)}
 
 
+def rig_setting(path: Path) -> dict:
+    from evdnerf_ros import demo
+
+    return {**RIG, "scene": "rig", "set": str(path.resolve()), "base": dict(demo.TRAIN_CONFIG)}
+
+
+def without_views(work: Path, train_set: Path, drop: list) -> Path:
+    """A copy of ``train_set`` (in WORK, made once) without the views at indices ``drop``."""
+    import shutil
+
+    import h5py
+
+    out = work / f"{train_set.stem}-without-{'-'.join(str(int(i)) for i in drop)}.h5"
+    if out.exists():
+        return out
+    part = out.with_suffix(".part")
+    shutil.copyfile(train_set, part)
+    with h5py.File(part, "r+") as f:
+        names = json.loads(f.attrs["view_names"])
+        for i in drop:
+            if f["views"][names[int(i)]].attrs["split"] != "train":
+                raise SystemExit(f"{train_set}: view {names[int(i)]} is not a training view: dropping it "
+                                 "would change what is scored")
+            del f["views"][names[int(i)]]
+        f.attrs["view_names"] = json.dumps([n for i, n in enumerate(names) if i not in {int(d) for d in drop}])
+    part.rename(out)
+    return out
+
+
 def build_set(work: Path, setting: dict) -> Path:
     from evdnerf_ros.session.convert import run_convert
     from evdnerf_ros.sim.simulate import SimulationOptions, simulate_session
 
+    if setting.get("scene") == "rig":
+        return Path(setting["set"])
     if setting.get("scene") == "fork-demo":
         from evdnerf_ros import demo
 
@@ -187,7 +236,9 @@ def child(args) -> None:
     setting = json.loads(args.setting)
     cfg = merged(BASE, setting.get("base", {}), json.loads(args.config))
     work = Path(args.work)
-    with TrainingSet(args.set) as ts:
+    drop = cfg.pop("_drop_views", None)
+    train_set = without_views(work, Path(args.set), drop) if drop else Path(args.set)
+    with TrainingSet(train_set) as ts:
         tr = Trainer(ts, cfg, minutes=setting["seconds"] / 60.0,
                      eval_fn=validation_eval(n_windows=32, max_views=setting["eval_views"]),
                      log=lambda m: print(m, file=sys.stderr, flush=True))
@@ -196,7 +247,7 @@ def child(args) -> None:
         summary = tr.train()
         final = final_scores(tr.field, ts, tr.cfg, tr.box, tr.dynamic,
                              {int(k): v for k, v in setting["final_views"].items()}, work,
-                             Path(args.set).stem, moving=bool(setting.get("moving")))
+                             train_set.stem, moving=bool(setting.get("moving")))
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(json.dumps({"lever": args.lever, "config": cfg, "iterations": summary["iterations"],
                       "train_s": summary["wall_s"],
@@ -220,7 +271,8 @@ def plot(result: dict, path: Path) -> None:
                   if m.get("val_margin_closed_pooled") is not None]
         if pooled:                                  # one MSE over all windows (dashed)
             x, y = zip(*pooled)
-            ax[0].plot(x, y, ls="--", lw=1.0, color=colour)
+            ax[0].plot(x, y, ls="--", lw=1.0, color=colour,
+                       label=None if pts else f"{name} ({r['ms_per_iter']:.0f} ms/it), pooled")
     ax[0].axhline(0, color="grey", ls="--", lw=1)
     ax[0].set_xlabel(f"training wall time (s, {result['setting']['threads']} torch thread(s) per run)")
     ax[0].set_ylabel("margin closed (%, validation, 32 windows; dashed: pooled)")
@@ -252,6 +304,8 @@ def main(argv=None):
     ap = arg_parser(__doc__, quick="the proxy levers for 30 s each")
     ap.add_argument("--full", action="store_true", help="Jet-Down 128x128, 18+18 views, 5 minutes")
     ap.add_argument("--demo", action="store_true", help="the demo's fork set and training config, 2 minutes")
+    ap.add_argument("--rig", type=Path, default=None,
+                    help="a virtual-rig demo's train.h5 (evdnerf demo -o OUT: OUT/train.h5), 2 minutes")
     ap.add_argument("--levers", default=None, help="comma-separated lever names (default: all)")
     ap.add_argument("--extra", default="{}", help="JSON {name: config} of further levers")
     ap.add_argument("--seconds", type=float, default=None, help="training seconds per run")
@@ -266,22 +320,27 @@ def main(argv=None):
     if args.child:
         args.threads = int(args.threads)
         return child(args)
-    setting = demo_setting() if args.demo else dict(FULL if args.full else PROXY)
+    setting = (rig_setting(args.rig) if args.rig else demo_setting() if args.demo
+               else dict(FULL if args.full else PROXY))
     if args.quick:
         setting["seconds"] = 30.0
     if args.seconds:
         setting["seconds"] = args.seconds
-    stem = args.stem or ("quality_demo" if args.demo else "quality" if args.full else "quality_proxy")
+    stem = args.stem or ("quality_rig" if args.rig else "quality_demo" if args.demo
+                         else "quality" if args.full else "quality_proxy")
     if args.replot:
         return plot(read_results(args.out, stem), args.out / f"{stem}.png")
     levers = {**LEVERS, **json.loads(args.extra)}
-    names = args.levers.split(",") if args.levers else DEMO_LEVERS if args.demo else list(LEVERS)
+    names = (args.levers.split(",") if args.levers else RIG_LEVERS if args.rig else DEMO_LEVERS if args.demo
+             else list(LEVERS))
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     train_set = build_set(work, setting)
     result = {"machine": machine("torch"), "load_before": load_average(), "setting": setting,
               "parallel": args.parallel, "baseline": BASE,
-              "title": (f"the demo's fork set, 96x72, {setting['views']}+{setting['val_views']} views + moving, "
+              "title": (f"the virtual rig's demo set ({train_set.name}), 48x36, "
+                        f"{setting['seconds']:.0f} s per run" if args.rig else
+                        f"the demo's fork set, 96x72, {setting['views']}+{setting['val_views']} views + moving, "
                         f"{setting['seconds']:.0f} s per run" if args.demo else
                         f"Jet-Down {setting['resolution']}x{setting['resolution']}, "
                         f"{setting['views']}+{setting['val_views']} views, "

@@ -41,7 +41,11 @@ def test_demo_captures_its_session_on_the_virtual_rig(tmp_path, rig_lock):
     assert doc["source"]["kind"] == "capture" and doc["source"]["rig"] == "virtual"
     assert doc["source"]["scene"] == "fork" and doc["rig"]["kind"] == "turntable"
     views = doc["views"]
-    assert [v["split"] for v in views] == ["train", "train", "val", "train", "train", "val", "train"]
+    from rig.demo_capture import VAL_EVERY, VIEWS
+
+    assert len(views) == VIEWS == 13
+    assert [v["split"] for v in views] == ["val" if i % VAL_EVERY == VAL_EVERY - 1 else "train" for i in range(VIEWS)]
+    assert views[-1]["split"] == "train"       # no validation view beyond the last training view
     assert all(v["complete"] and v["events"] > 100 for v in views)
     # the true clock offsets come from the twin (every trigger edge placed on time on an idle
     # machine); sync by trigger finds each view's START within the sensor's microsecond
@@ -61,7 +65,7 @@ def test_demo_captures_its_session_on_the_virtual_rig(tmp_path, rig_lock):
     assert len({t // 10**9 for t in placed.values()}) == len(placed)
 
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["source"] == "virtual-rig" and summary["views"] == 7
+    assert summary["source"] == "virtual-rig" and summary["views"] == VIEWS
     assert all(v["bit_exact"] for v in summary["round_trips"].values())
     assert set(summary["sync_error_us"]) == set(placed) and all(abs(e) <= 1.0 for e in summary["sync_error_us"].values())
 
@@ -69,7 +73,7 @@ def test_demo_captures_its_session_on_the_virtual_rig(tmp_path, rig_lock):
     from evdnerf_ros.io.trainingset import TrainingSet
 
     with TrainingSet(out / "train.h5") as ts:
-        assert (ts.width, ts.height) == (w, h) and len(ts.views) == 7 and len(ts.val_views) == 2
+        assert (ts.width, ts.height) == (w, h) and len(ts.views) == VIEWS and len(ts.val_views) == 4
         assert ts.provenance["crop"] == [x, y, w, h]
         assert ts.provenance["session_source"]["kind"] == "capture"
         truth = ts.provenance.get("truth")
