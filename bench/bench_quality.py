@@ -19,10 +19,10 @@ per run; the final scores add the pooled margin and the moving camera (flat stat
 ``evdnerf eval`` scores it).
 
 ``--rig TRAIN.h5``: a training set the demo made on the virtual rig (``evdnerf demo -o OUT`` writes
-``OUT/train.h5``: 48x36, 9 training + 4 validation turntable views), the demo's training config and
-field (``hinge``), 2 minutes per run, scored on every validation view (pooled, as the demo's
-verdict). A lever may leave training views out (``"_drop_views": [view indices]``, the set's view
-order): the same capture and validation views with fewer training views.
+``OUT/train.h5``: 48x36, 17 training + 8 validation turntable views), the demo's training config
+and field (``hinge``), 2 minutes per run, scored on every validation view (pooled, as the demo's
+verdict). A lever may keep fewer training views (``"_training_views": N``, spread evenly along
+the ring): the same capture and validation views with fewer training views.
 
 Usage: python bench/bench_quality.py [--full | --demo | --rig TRAIN.h5] [--levers a,b,...] [--seconds S]
        [--parallel N] [--replot]
@@ -91,15 +91,21 @@ LEVERS = {
     "rigid-windows-32": {"backbone": "rigid", "windows": [32], "window_switch": []},
 }
 LEVERS.update({
-    # the virtual rig's demo set (--rig): all 9 training views of the 13-view capture, or 5 of them
-    # 45 deg apart (0, 45, 90, 135, 180), the validation views the same
-    "rig-9-training-views": {"backbone": "hinge"},
-    "rig-5-training-views": {"backbone": "hinge", "_drop_views": [1, 4, 7, 10]},
-    "rig-9-training-views-seed-1": {"backbone": "hinge", "seed": 1},
-    "rig-5-training-views-seed-1": {"backbone": "hinge", "_drop_views": [1, 4, 7, 10], "seed": 1},
+    # the virtual rig's demo set (--rig): all its training views, or N of them spread evenly along
+    # the ring (its ends kept), the validation views the same
+    "rig-all-training-views": {"backbone": "hinge"},
+    "rig-9-training-views": {"backbone": "hinge", "_training_views": 9},
+    "rig-5-training-views": {"backbone": "hinge", "_training_views": 5},
+    "rig-all-training-views-seed-1": {"backbone": "hinge", "seed": 1},
+    "rig-9-training-views-seed-1": {"backbone": "hinge", "_training_views": 9, "seed": 1},
+    "rig-5-training-views-seed-1": {"backbone": "hinge", "_training_views": 5, "seed": 1},
+    # each window edge rendered as the twin's frame grid shows it (camera_grid) against at its exact
+    # time (the default)
+    "rig-camera-grid": {"backbone": "hinge", "camera_grid": True},
+    "rig-camera-grid-seed-1": {"backbone": "hinge", "camera_grid": True, "seed": 1},
 })
-RIG_LEVERS = ["rig-9-training-views", "rig-5-training-views", "rig-9-training-views-seed-1",
-              "rig-5-training-views-seed-1"]
+RIG_LEVERS = ["rig-all-training-views", "rig-9-training-views", "rig-5-training-views",
+              "rig-all-training-views-seed-1", "rig-9-training-views-seed-1", "rig-5-training-views-seed-1"]
 #: --demo's levers by default (the demo's config already sets windows and 32 samples).
 DEMO_LEVERS = ["baseline", "lr-0.01", "lr-0.005", "spans-0.8", "samples-48", "time-res-32", "event-rays-0.8"]
 
@@ -109,7 +115,7 @@ FULL = {"views": 18, "val_views": 18, "resolution": 128, "seconds": 300.0, "thre
         "eval_views": 4, "final_views": {1: 4, 4: 4, 8: 4}}
 DEMO = {"scene": "fork-demo", "seconds": 120.0, "threads": 1, "eval_views": 2, "final_views": {1: 2, 4: 2},
         "moving": True}
-RIG = {"seconds": 120.0, "threads": 1, "eval_views": 4, "final_views": {1: 4, 4: 4}}
+RIG = {"seconds": 120.0, "threads": 1, "eval_views": 8, "final_views": {1: 8, 4: 8}}
 
 
 def demo_setting() -> dict:
@@ -126,25 +132,29 @@ def rig_setting(path: Path) -> dict:
     return {**RIG, "scene": "rig", "set": str(path.resolve()), "base": dict(demo.TRAIN_CONFIG)}
 
 
-def without_views(work: Path, train_set: Path, drop: list) -> Path:
-    """A copy of ``train_set`` (in WORK, made once) without the views at indices ``drop``."""
+def with_training_views(work: Path, train_set: Path, keep: int) -> Path:
+    """A copy of ``train_set`` (in WORK, made once) keeping ``keep`` of its training views, spread
+    evenly over their order (the first and last kept), and every validation view."""
     import shutil
 
     import h5py
+    import numpy as np
 
-    out = work / f"{train_set.stem}-without-{'-'.join(str(int(i)) for i in drop)}.h5"
+    out = work / f"{train_set.stem}-{int(keep)}-training-views.h5"
     if out.exists():
         return out
     part = out.with_suffix(".part")
     shutil.copyfile(train_set, part)
     with h5py.File(part, "r+") as f:
         names = json.loads(f.attrs["view_names"])
-        for i in drop:
-            if f["views"][names[int(i)]].attrs["split"] != "train":
-                raise SystemExit(f"{train_set}: view {names[int(i)]} is not a training view: dropping it "
-                                 "would change what is scored")
-            del f["views"][names[int(i)]]
-        f.attrs["view_names"] = json.dumps([n for i, n in enumerate(names) if i not in {int(d) for d in drop}])
+        train = [n for n in names if f["views"][n].attrs["split"] == "train"]
+        if not 2 <= keep <= len(train):
+            raise SystemExit(f"{train_set}: cannot keep {keep} of its {len(train)} training views")
+        kept = {train[i] for i in np.round(np.linspace(0, len(train) - 1, int(keep))).astype(int)}
+        for n in train:
+            if n not in kept:
+                del f["views"][n]
+        f.attrs["view_names"] = json.dumps([n for n in names if n in kept or n not in train])
     part.rename(out)
     return out
 
@@ -236,8 +246,8 @@ def child(args) -> None:
     setting = json.loads(args.setting)
     cfg = merged(BASE, setting.get("base", {}), json.loads(args.config))
     work = Path(args.work)
-    drop = cfg.pop("_drop_views", None)
-    train_set = without_views(work, Path(args.set), drop) if drop else Path(args.set)
+    keep = cfg.pop("_training_views", None)
+    train_set = with_training_views(work, Path(args.set), keep) if keep else Path(args.set)
     with TrainingSet(train_set) as ts:
         tr = Trainer(ts, cfg, minutes=setting["seconds"] / 60.0,
                      eval_fn=validation_eval(n_windows=32, max_views=setting["eval_views"]),

@@ -43,7 +43,7 @@ def test_demo_captures_its_session_on_the_virtual_rig(tmp_path, rig_lock):
     views = doc["views"]
     from rig.demo_capture import VAL_EVERY, VIEWS
 
-    assert len(views) == VIEWS == 13
+    assert len(views) == VIEWS == 25
     assert [v["split"] for v in views] == ["val" if i % VAL_EVERY == VAL_EVERY - 1 else "train" for i in range(VIEWS)]
     assert views[-1]["split"] == "train"       # no validation view beyond the last training view
     assert all(v["complete"] and v["events"] > 100 for v in views)
@@ -73,7 +73,7 @@ def test_demo_captures_its_session_on_the_virtual_rig(tmp_path, rig_lock):
     from evdnerf_ros.io.trainingset import TrainingSet
 
     with TrainingSet(out / "train.h5") as ts:
-        assert (ts.width, ts.height) == (w, h) and len(ts.views) == VIEWS and len(ts.val_views) == 4
+        assert (ts.width, ts.height) == (w, h) and len(ts.views) == VIEWS and len(ts.val_views) == VIEWS // VAL_EVERY
         assert ts.provenance["crop"] == [x, y, w, h]
         assert ts.provenance["session_source"]["kind"] == "capture"
         truth = ts.provenance.get("truth")

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import torch
 
 from evdnerf_ros.eval.metrics import event_metrics, protocol_windows
 from evdnerf_ros.eval.truth import TrueScene, margin_closed
@@ -178,3 +179,82 @@ def test_no_true_scene_where_the_twin_rendered_stale_joint_angles():
     views["b"]["ground_truth_stale_renders"] = 3
     record, why = _truth_record(source, views, None)
     assert record is None and "view(s) b (3)" in why and "stale joint angles" in why
+
+
+class _Flicker(torch.nn.Module):
+    """A fog whose grey swings with time (not linearly): the field interface, nothing learned."""
+
+    def forward(self, x, t):
+        return torch.full((x.shape[0],), 2.0), 0.4 + 0.3 * torch.sin(9.0 * t.reshape(-1)).expand(x.shape[0])
+
+    def space_features(self, x):
+        return x
+
+    def decode(self, x, t):
+        return self.forward(x, t)
+
+    def decode_static(self, x):
+        return self.forward(x, torch.zeros(1))
+
+
+def test_a_frame_based_camera_in_training_and_evaluation(tiny_train_h5, tmp_path):
+    """``camera_grid``: where the set records the twin's frame grid, a window edge is the two
+    frames around it joined in log. Edges on the grid: exactly the exact-time renders (training
+    loss and evaluation alike); edges between frames: the frames around them, weighted by where
+    the edge falls; a set without a grid is unaffected."""
+    from evdnerf_ros.eval.evaluate import evaluate_views
+    from evdnerf_ros.eval.truth import on_render_grid
+    from evdnerf_ros.train.rays import RaySampler
+    from evdnerf_ros.train.trainer import Trainer
+
+    # on_render_grid: linear between grid times, each grid time rendered once
+    calls = []
+
+    def log_render(t):
+        calls.append(t)
+        return np.array([float(t) ** 2])
+
+    image = on_render_grid(log_render, 10, 3)
+    assert image(13)[0] == 169.0 and image(18)[0] == pytest.approx(0.5 * 169 + 0.5 * 529)
+    assert image(-2)[0] == pytest.approx(0.5 * 49 + 0.5 * 9) and sorted(calls) == [-7, 3, 13, 23]
+
+    with TrainingSet(tiny_train_h5) as ts:
+        views, origin = ts.views, ts.provenance["truth"]["scene_time_at_origin_ns"]
+        t0, t1 = ts.time_range
+        assert all(ts.frame_grid(v) is None for v in views)
+    n = 8
+    assert (t1 - t0) % n == 0
+    period = (t1 - t0) // n                        # one frame per window: every edge on the grid
+    on_grid = _with_truth(tiny_train_h5, tmp_path / "on.h5", render_grid={
+        "period_ns": period, "scene_ns": {v: int(origin[v]) + int(t0) + 3 * period for v in views}})
+    off_grid = _with_truth(tiny_train_h5, tmp_path / "off.h5", render_grid={
+        "period_ns": period, "scene_ns": {v: int(origin[v]) + int(t0) + period // 4 for v in views}})
+    cfg = {"n_samples": 16, "rays": 64, "perturb": False, "windows": [n], "window_switch": [], "seed": 3}
+    with TrainingSet(on_grid) as on_set, TrainingSet(off_grid) as off_set:
+        assert on_set.frame_grid(views[0]) == (period, int(t0) + 3 * period)
+        sampler = RaySampler(off_set, camera_grid=True, seed=1)
+        sampler.set_windows(n)
+        batch = sampler.sample(32)
+        edges = off_set.normalized_time(window_edges(t0, t1, n)[[batch.window, batch.window + 1]])
+        before, after = batch.grid_times[0::2].numpy(), batch.grid_times[1::2].numpy()
+        assert np.all(before <= edges[:, None] + 1e-7) and np.all(after >= edges[:, None] - 1e-7)
+        np.testing.assert_allclose(batch.grid_weights.numpy(), 0.75, atol=1e-6)   # a quarter frame past
+        assert RaySampler(off_set, camera_grid=False).grids is None
+
+        losses = []
+        for grid in (True, False):
+            tr = Trainer(on_set, dict(cfg, camera_grid=grid), iters=1, log=lambda m: None)
+            tr.sampler.set_windows(n)
+            torch.manual_seed(0)
+            b = tr.sampler.sample(64)
+            assert (b.grid_times is not None) == grid
+            losses.append(float(tr.compute_loss(b).detach()))
+        assert losses[0] == pytest.approx(losses[1], rel=1e-5)
+        field = _Flicker()                           # a grey not linear in time: frames show it
+        kw = dict(box=tr.box, n_samples=16, log_eps=tr.cfg.log_eps, background=tr.cfg.background)
+        val = on_set.val_views[:1]
+        pred_on, _, _ = evaluate_views(field, on_set, val, n, windows=range(n), **kw)
+        pred_exact, _, _ = evaluate_views(field, on_set, val, n, windows=range(n), camera_grid=False, **kw)
+        np.testing.assert_allclose(pred_on, pred_exact, atol=1e-6)
+        pred_off, _, _ = evaluate_views(field, off_set, val, n, windows=range(n), **kw)
+        assert np.abs(pred_off - pred_exact).max() > 1e-4

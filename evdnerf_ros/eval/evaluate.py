@@ -28,7 +28,7 @@ from ..limits import check_memory
 from ..geometry.pose_track import PoseTrack
 from ..train.rays import camera_of
 from .metrics import brightness_align, event_metrics, psnr
-from .truth import TrueScene, margin_closed
+from .truth import TrueScene, margin_closed, on_render_grid
 from .windows import scored_windows, window_changes
 
 
@@ -49,11 +49,15 @@ def evaluate_views(field, train_set, views, n_windows: int, *, windows=None, tru
 def evaluate_window_counts(field, train_set, views, counts, *, box, n_samples: int,
                            log_eps: float, near: float = 0.0, far: float = float("inf"),
                            background: float = 0.0, occupancy=None, dynamic=None, windows=None, truth=None,
-                           truth_metrics=None, static_world: str = "field") -> list:
+                           truth_metrics=None, static_world: str = "field", camera_grid: bool = True) -> list:
     """``evaluate_views`` at each window count of ``counts`` (one (pred, gt, metrics) each),
     rendering the field and the true scene once per distinct window end of a view across the
     counts (``eval.windows``).  ``static_world``: auto, field or flat (module docstring; flat
-    needs ``dynamic``); ``truth_metrics``: None or one earlier truth score (or None) per count."""
+    needs ``dynamic``); ``truth_metrics``: None or one earlier truth score (or None) per count.
+    ``camera_grid``: a view whose camera drew the scene only on a grid of frame times (the virtual
+    rig's twin, ``TrainingSet.frame_grid``) sees the field as that camera would: the frames around
+    each window edge joined linearly in log, as the true-scene reference renders it (False: the
+    field at the exact edge times)."""
     if static_world not in ("auto", "field", "flat"):
         raise InputError(f"static_world must be auto, field or flat, got {static_world!r}")
     if static_world == "flat" and dynamic is None:
@@ -98,7 +102,9 @@ def evaluate_window_counts(field, train_set, views, counts, *, box, n_samples: i
             b = render(t)
             return np.log(np.asarray(b.detach().cpu().numpy() if hasattr(b, "detach") else b, np.float64) + log_eps)
 
-        changes = np.split(np.stack(window_changes(log_render, spans)).astype(np.float32), splits)
+        grid = train_set.frame_grid(v) if camera_grid else None
+        log_image = log_render if grid is None else on_render_grid(log_render, *grid)
+        changes = np.split(np.stack(window_changes(log_image, spans)).astype(np.float32), splits)
         true = np.split(truth.log_changes(v, spans), splits) if score_truth else [None] * len(counts)
         for c, (edges, ks) in enumerate(scored):
             preds[c].append(changes[c])

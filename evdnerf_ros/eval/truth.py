@@ -113,22 +113,8 @@ class TrueScene:
     def _on_grid(self, log_render, origin: int, grid_point: int):
         """log_image(t_common) of a camera twin that rendered only at the scene times
         ``grid_point + k * period`` and joined them linearly in log (each grid time rendered once)."""
-        period, renders = self.grid_period, {}
-
-        def at(t_scene: int) -> np.ndarray:
-            if t_scene not in renders:
-                renders[t_scene] = log_render(t_scene)
-            return renders[t_scene]
-
-        def log_image(t_common: int) -> np.ndarray:
-            t = t_common + origin
-            a = grid_point + (t - grid_point) // period * period
-            if a == t:
-                return at(a)
-            w = (t - a) / period
-            return at(a) * (1.0 - w) + at(a + period) * w
-
-        return log_image
+        on_grid = on_render_grid(log_render, self.grid_period, grid_point)
+        return lambda t_common: on_grid(t_common + origin)
 
     def _bin(self, d: np.ndarray) -> np.ndarray:
         s = self.s
@@ -136,6 +122,27 @@ class TrueScene:
             return d
         h, w = self.ts.height, self.ts.width
         return d[:h * s, :w * s].reshape(h, s, w, s).sum(axis=(1, 3))
+
+
+def on_render_grid(log_render, period: int, grid_point: int):
+    """``log_image(t)`` of a frame-based camera: ``log_render`` (int64 ns -> log image) drawn only at
+    the times ``grid_point + k * period`` and joined linearly in log between them, each grid time
+    rendered once (the virtual rig's camera twin: ``rig.virtual.frame_ns``)."""
+    renders: dict = {}
+
+    def at(t: int) -> np.ndarray:
+        if t not in renders:
+            renders[t] = log_render(t)
+        return renders[t]
+
+    def log_image(t: int) -> np.ndarray:
+        a = grid_point + (t - grid_point) // period * period
+        if a == t:
+            return at(a)
+        w = (t - a) / period
+        return at(a) * (1.0 - w) + at(a + period) * w
+
+    return log_image
 
 
 def margin_closed(field: float, floor: float, truth: float) -> float | None:

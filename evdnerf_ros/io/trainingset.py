@@ -683,6 +683,19 @@ class TrainingSet:
             raise FormatError(f"provenance is not a JSON object; {_FIX}", source=str(self.path))
         return out
 
+    def frame_grid(self, view) -> tuple[int, int] | None:
+        """(period_ns, one frame time in the common clock) of a view whose camera drew the scene
+        only on a grid of frame times and joined them linearly in log (the virtual rig's camera
+        twin: convert records it as ``provenance.truth.render_grid``), else None."""
+        name = self._name(view)
+        record = self.provenance.get("truth") or {}
+        grid = record.get("render_grid") or {}
+        frame = (grid.get("scene_ns") or {}).get(name)
+        origin = (record.get("scene_time_at_origin_ns") or {}).get(name)
+        if frame is None or origin is None:
+            return None
+        return int(grid["period_ns"]), int(frame) - int(origin)
+
     def frames(self, view) -> dict | None:
         """Blurred frames {frames, t_start, t_end, t} in the common clock, or None."""
         name = self._name(view)

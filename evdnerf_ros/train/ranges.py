@@ -72,7 +72,7 @@ NUMBERS = {
     "log_every": (0, BIG, "int", False),
 }
 NULLABLE = ("iters", "minutes", "n_samples", "lr_final", "part_empty_weight")   # all but the first two: the backbone's default
-BOOLS = ("perturb", "dynamic_region", "learn_thresholds", "sample_reuse")
+BOOLS = ("perturb", "dynamic_region", "learn_thresholds", "sample_reuse", "camera_grid")
 #: windows: 1 to MAX_PHASES counts in [1, MAX_WINDOWS]; window_switch: fractions in (0, 1).
 MAX_WINDOWS = 1 << 20
 MAX_PHASES = 64

@@ -79,13 +79,21 @@ class RayBatch:
     pixels: np.ndarray         # (N,) flat pixel index
     counts: torch.Tensor | None = None  # (N, 2) (positive, negative) event counts, when kept
     span: int = 1              # consecutive windows the batch spans
+    #: a frame-based camera (``camera_grid``): each ray's window start and end fall between two
+    #: frame times; (4, N) normalised times (start's frame before / after, end's before / after) and
+    #: (2, N) weights of the later frame, the camera's log image being the frames joined linearly
+    grid_times: torch.Tensor | None = None
+    grid_weights: torch.Tensor | None = None
 
 
 class RaySampler:
     def __init__(self, train_set, *, views=None, event_ray_fraction: float = 0.5,
-                 seed: int = 0, dynamic=None, box=None, keep_counts: bool = False):
+                 seed: int = 0, dynamic=None, box=None, keep_counts: bool = False,
+                 camera_grid: bool = False):
         """``keep_counts``: also return each ray's per-polarity event counts (for learned
-        thresholds; needs views stored as events)."""
+        thresholds; needs views stored as events).  ``camera_grid``: where the set records that a
+        view's camera drew the scene only on a grid of frame times (``TrainingSet.frame_grid``:
+        the virtual rig's twin), each batch also carries the frame times around its window edges."""
         self.ts = train_set
         self.keep_counts = bool(keep_counts)
         self.views = list(train_set.train_views if views is None else views)
@@ -111,6 +119,11 @@ class RaySampler:
         self._active = None                    # (V, n + 1, P) windows with a change so far
         self._centroids: dict = {}
         self.device = torch.device("cpu")
+        self.grids = None                      # (V, 2) int64 (period, a frame time), or None
+        if camera_grid:
+            grids = [train_set.frame_grid(v) for v in self.views]
+            if all(g is not None for g in grids):
+                self.grids = np.array(grids, np.int64)
 
     def to(self, device) -> "RaySampler":
         """Batches on ``device`` from now on (the rays of every view are copied there once;
@@ -236,11 +249,29 @@ class RaySampler:
             sel = vi == v
             on_event[sel] = np.isin(pix[sel], events_in(int(v)))
         tn = self.ts.normalized_time(self._edges[[k, k + span]])
+        grid_times = grid_weights = None
+        if self.grids is not None:
+            grid_times, grid_weights = self._frame_times(self._edges[[k, k + span]], vi)
         return RayBatch(origins=self.origins[vi_t, pix_t], dirs=self.dirs[vi_t, pix_t],
                         dl=torch.as_tensor(dl, device=dev),
                         on_event=torch.as_tensor(on_event, device=dev), t0=float(tn[0]), t1=float(tn[1]),
                         window=k, n_windows=self._n, views=vi, pixels=pix, span=span,
-                        counts=None if counts is None else torch.as_tensor(counts, device=dev))
+                        counts=None if counts is None else torch.as_tensor(counts, device=dev),
+                        grid_times=grid_times, grid_weights=grid_weights)
+
+    def _frame_times(self, edges: np.ndarray, vi: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """((4, N) normalised frame times around the two window edges, (2, N) weights of the later
+        frame) of rays from views ``vi`` (int64 arithmetic: the frames lie on each view's grid)."""
+        period, point = self.grids[vi, 0], self.grids[vi, 1]
+        times, weights = [], []
+        for edge in edges:
+            before = point + (np.int64(edge) - point) // period * period
+            times += [before, before + period]
+            weights.append((np.int64(edge) - before) / period)
+        tn = self.ts.normalized_time(np.stack(times).reshape(-1)).reshape(4, -1)
+        dev = self.device
+        return (torch.as_tensor(tn, dtype=torch.float32, device=dev),
+                torch.as_tensor(np.stack(weights), dtype=torch.float32, device=dev))
 
 
 @dataclass

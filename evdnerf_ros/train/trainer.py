@@ -146,7 +146,7 @@ class Trainer:
             min_events=cfg.dynamic_min_events, dilate_px=cfg.dynamic_dilate_px,
             misses=cfg.dynamic_misses)
             if cfg.dynamic_region and cfg.supervision == "events" else None)
-        self.sampler = RaySampler(train_set, event_ray_fraction=cfg.event_ray_fraction,
+        self.sampler = RaySampler(train_set, event_ray_fraction=cfg.event_ray_fraction, camera_grid=cfg.camera_grid,
                                   seed=cfg.seed, dynamic=self.dynamic, box=self.box,
                                   keep_counts=cfg.learn_thresholds).to(self.device)
         if self.dynamic is not None:     # after the sampler picked its rays on the host
@@ -211,11 +211,19 @@ class Trainer:
             n_samples=cfg.n_samples, near=cfg.near, far=cfg.far, background=cfg.background,
             perturb=cfg.perturb, generator=self.gen, occupancy=self.occupancy,
             dynamic=self.dynamic, changes_only=self.dynamic is not None)
-        if cfg.sample_reuse:
-            r0, r1 = render([batch.t0, batch.t1])
+        if batch.grid_times is not None:
+            # a frame-based camera: its log image at a window edge joins the frames around it
+            times = list(batch.grid_times)
+            renders = render(times) if cfg.sample_reuse else [render(t) for t in times]
+            logs = [torch.log(r["grey"] + cfg.log_eps) for r in renders]
+            w0, w1 = batch.grid_weights
+            dl_hat = torch.lerp(logs[2], logs[3], w1) - torch.lerp(logs[0], logs[1], w0)
         else:
-            r0, r1 = render(batch.t0), render(batch.t1)
-        dl_hat = torch.log(r1["grey"] + cfg.log_eps) - torch.log(r0["grey"] + cfg.log_eps)
+            if cfg.sample_reuse:
+                r0, r1 = render([batch.t0, batch.t1])
+            else:
+                r0, r1 = render(batch.t0), render(batch.t1)
+            dl_hat = torch.log(r1["grey"] + cfg.log_eps) - torch.log(r0["grey"] + cfg.log_eps)
         c_pos, c_neg, dl = self.c_pos, self.c_neg, batch.dl
         if self.thresholds is not None:
             c_pos, c_neg = self.thresholds()
