@@ -227,12 +227,14 @@ def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: 
     def one(path, params, ref, **kw):
         """One lever's publish, repeated (up to ``REPEATS`` runs within ``REPEAT_WALL_S`` of publishing)
         where a run is short enough for the machine's noise to matter: its RTF is the median."""
-        r = published_vs_true(run, h5, n_windows=windows, static=path == "static", duration_ns=spans[path],
-                              publisher=params, true_reference=ref, log=lambda m: print(m, flush=True), **kw)
+        def publish(reference, log):
+            return published_vs_true(run, h5, n_windows=windows, static=path == "static", duration_ns=spans[path],
+                                     publisher=params, true_reference=reference, log=log, **kw)
+
+        r = publish(ref, lambda m: print(m, flush=True))
         rtfs, walls = [r["publisher"]["rtf"]], [r["publisher"]["wall_s"]]
         while len(rtfs) < REPEATS and sum(walls) < REPEAT_WALL_S:
-            again = published_vs_true(run, h5, n_windows=windows, static=path == "static", duration_ns=spans[path],
-                                      publisher=params, true_reference=r["reference"], log=lambda m: None, **kw)
+            again = publish(r["reference"], lambda m: None)
             rtfs.append(again["publisher"]["rtf"])
             walls.append(again["publisher"]["wall_s"])
         r["publisher"].update(rtf=float(np.median(rtfs)), rtf_runs=rtfs)

@@ -130,12 +130,11 @@ def image_travel(scene, camera, pose_at: Callable[[int], np.ndarray], t0: int, t
     return ImageTravel(times, np.cumsum(steps))
 
 
-def travels(travel_px, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(K,) image travel bounds of the pieces [a[k], b[k]]: ``travel_px.many`` where it has one
-    (``ImageTravel``: one vectorised pass), else ``travel_px(a, b)`` piece by piece."""
-    many = getattr(travel_px, "many", None)
-    if many is not None:
-        return np.asarray(many(np.asarray(a, np.int64), np.asarray(b, np.int64)), np.float64)
+def travels(travel_px: ImageTravel | Callable[[int, int], float], a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(K,) image travel bounds of the pieces [a[k], b[k]]: an ``ImageTravel``'s in one vectorised
+    pass (``many``), any other ``travel_px(a, b)`` callable's piece by piece."""
+    if isinstance(travel_px, ImageTravel):
+        return np.asarray(travel_px.many(np.asarray(a, np.int64), np.asarray(b, np.int64)), np.float64)
     return np.array([travel_px(int(x), int(y)) for x, y in zip(a, b)], np.float64)
 
 
