@@ -201,7 +201,8 @@ def test_a_frame_based_camera_in_training_and_evaluation(tiny_train_h5, tmp_path
     """``camera_grid``: where the set records the twin's frame grid, a window edge is the two
     frames around it joined in log. Edges on the grid: exactly the exact-time renders (training
     loss and evaluation alike); edges between frames: the frames around them, weighted by where
-    the edge falls; a set without a grid is unaffected."""
+    the edge falls; a set without a grid is unaffected, a damaged one is an error naming it."""
+    from evdnerf_ros.errors import FormatError
     from evdnerf_ros.eval.evaluate import evaluate_views
     from evdnerf_ros.eval.truth import on_render_grid
     from evdnerf_ros.train.rays import RaySampler
@@ -232,6 +233,11 @@ def test_a_frame_based_camera_in_training_and_evaluation(tiny_train_h5, tmp_path
     cfg = {"n_samples": 16, "rays": 64, "perturb": False, "windows": [n], "window_switch": [], "seed": 3}
     with TrainingSet(on_grid) as on_set, TrainingSet(off_grid) as off_set:
         assert on_set.frame_grid(views[0]) == (period, int(t0) + 3 * period)
+    broken = _with_truth(tiny_train_h5, tmp_path / "broken.h5", render_grid={
+        "period_ns": 0, "scene_ns": {v: int(origin[v]) for v in views}})
+    with TrainingSet(broken) as ts, pytest.raises(FormatError, match=r"broken\.h5.*render_grid.*period > 0"):
+        ts.frame_grid(views[0])
+    with TrainingSet(on_grid) as on_set, TrainingSet(off_grid) as off_set:
         sampler = RaySampler(off_set, camera_grid=True, seed=1)
         sampler.set_windows(n)
         batch = sampler.sample(32)

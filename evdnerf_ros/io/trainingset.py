@@ -694,7 +694,12 @@ class TrainingSet:
         origin = (record.get("scene_time_at_origin_ns") or {}).get(name)
         if frame is None or origin is None:
             return None
-        return int(grid["period_ns"]), int(frame) - int(origin)
+        period = grid.get("period_ns")
+        if isinstance(period, bool) or not isinstance(period, int) or period <= 0 \
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in (frame, origin)):
+            raise FormatError(f"view {name}: provenance.truth.render_grid holds period_ns {period!r} and frame "
+                              f"time {frame!r} (need integer ns, period > 0); {_FIX}", source=str(self.path))
+        return period, frame - origin
 
     def frames(self, view) -> dict | None:
         """Blurred frames {frames, t_start, t_end, t} in the common clock, or None."""
