@@ -31,6 +31,7 @@ import numpy as np
 
 from ..errors import EvdnerfError
 from ..events.logmap import LOG_EPS
+from ..events.slicing import frame_at_or_before
 from ..geometry.camera import PinholeCamera
 from ..geometry.pose_track import PoseTrack
 
@@ -136,7 +137,7 @@ def on_render_grid(log_render, period: int, grid_point: int):
         return renders[t]
 
     def log_image(t: int) -> np.ndarray:
-        a = grid_point + (t - grid_point) // period * period
+        a = frame_at_or_before(t, period, grid_point)
         if a == t:
             return at(a)
         w = (t - a) / period

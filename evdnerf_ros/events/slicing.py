@@ -29,6 +29,12 @@ def window_edges(t_start: int, t_end: int, n_windows: int) -> np.ndarray:
     return np.array([t_start + (span * k) // n_windows for k in range(n_windows + 1)], np.int64)
 
 
+def frame_at_or_before(t, period, frame):
+    """The time of the frame at or before ``t`` on the grid ``frame + k * period`` (int64 ns;
+    scalars or arrays alike): where a frame-based camera's last render before ``t`` was."""
+    return frame + (t - frame) // period * period
+
+
 def window_of_each_event(t: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Window index per event for sorted edges (-1 before the first edge, K at/after the last)."""
     return np.searchsorted(edges, t, side="right") - 1

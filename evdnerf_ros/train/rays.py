@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..events.slicing import window_edges
+from ..events.slicing import frame_at_or_before, window_edges
 from ..field import camera_rays
 from ..geometry.camera import PinholeCamera, common_look_at
 
@@ -265,7 +265,7 @@ class RaySampler:
         period, point = self.grids[vi, 0], self.grids[vi, 1]
         times, weights = [], []
         for edge in edges:
-            before = point + (np.int64(edge) - point) // period * period
+            before = frame_at_or_before(np.int64(edge), period, point)
             times += [before, before + period]
             weights.append((np.int64(edge) - before) / period)
         tn = self.ts.normalized_time(np.stack(times).reshape(-1)).reshape(4, -1)
