@@ -323,14 +323,16 @@ class EventPublisher(Node):
         return self.source.render_pixels(poses, t_scene, which, pixels)
 
     def _plan_poses(self, t0: int, t1: int, step: int) -> None:
-        """Make the camera poses of a chunk's sampling grid (``simulate_pixels``' times ``t0 + k step``
-        and ``t1``) at once: its many small renders look them up rather than each interpolating the
-        trajectory afresh (~0.2 ms a call); none beyond ``POSE_GRID_MAX`` grid times."""
-        n = -(-(t1 - t0) // step)
+        """Make the camera poses of a chunk's sampling grid (``simulate_pixels``' grid times) at once:
+        its many small renders look them up rather than each interpolating the trajectory afresh
+        (~0.2 ms a call); none beyond ``POSE_GRID_MAX`` grid times."""
+        from ..sim.sampling import pixel_grid_size, pixel_grid_times
+
+        n = pixel_grid_size(t0, t1, step)
         if n + 1 > POSE_GRID_MAX:
             self._pose_grid = None
             return
-        times = np.append(t0 + np.arange(n, dtype=np.int64) * step, np.int64(t1))
+        times = pixel_grid_times(np.arange(n + 1, dtype=np.int64), t0, t1, step)
         self._pose_grid = (times, self.track.poses(times) @ self.T_robot_cam)
 
     def _camera_poses(self, times: np.ndarray) -> np.ndarray:

@@ -261,6 +261,19 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
     return events, stats
 
 
+def pixel_grid_size(t_start: int, t_end: int, min_step_ns: int) -> int:
+    """Points of ``simulate_pixels``' grid over [t_start, t_end] but the last: ``t_start + j
+    min_step_ns`` for j < this, then ``t_end`` (``pixel_grid_times``)."""
+    return -(-(int(t_end) - int(t_start)) // int(min_step_ns))
+
+
+def pixel_grid_times(j: np.ndarray, t_start: int, t_end: int, min_step_ns: int) -> np.ndarray:
+    """(…,) int64 times of ``simulate_pixels``' grid points ``j`` over [t_start, t_end] (a caller
+    making its camera poses ahead, as the publisher does, asks for the same times)."""
+    n = pixel_grid_size(t_start, t_end, min_step_ns)
+    return np.where(j >= n, t_end, t_start + np.asarray(j, np.int64) * min_step_ns).astype(np.int64)
+
+
 def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray], t_start, t_end,
                     generator: EventGenerator, *, tolerance_c: float = 0.1, max_dlog_c: float | None = None,
                     min_step_ns: int = DEFAULT_MIN_STEP_NS, max_step_ns: int = DEFAULT_MAX_STEP_NS,
@@ -305,10 +318,10 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
     c_ref = min(generator.c_pos, generator.c_neg)
     limit = tol * c_ref
     dlog_limit = None if max_dlog_c is None else float(max_dlog_c) * c_ref
-    n = -(-(t_end - t_start) // min_step)          # grid points, as in the image mode
+    n = pixel_grid_size(t_start, t_end, min_step)          # grid points, as in the image mode
 
     def times(j: np.ndarray) -> np.ndarray:
-        return np.where(j >= n, t_end, t_start + j * min_step).astype(np.int64)
+        return pixel_grid_times(j, t_start, t_end, min_step)
 
     def render_log(j: np.ndarray, pix: np.ndarray) -> np.ndarray:
         t = times(j)
