@@ -15,8 +15,11 @@ the chosen combination.
 
 ``--demo``: the demo's simulated fork set (``evdnerf demo --source simulate``: 96x72, 4 training
 + 2 validation views and a moving camera), the demo's training config as the baseline, 2 minutes
-per run; the final scores add the pooled margin and the moving camera (flat static world, as
-``evdnerf eval`` scores it).
+per run; the final scores add the pooled margin and the moving camera (its static world as
+``evdnerf eval`` resolves ``auto``: flat).  ``--sweeps N`` adds N training views whose camera
+sweeps the ring (``evdnerf simulate --moving-train-views``); a lever
+``"_static_training_only": true`` trains on the same set without them; a run that trained on
+sweeps is scored on the moving camera with its own static world too (``moving_x1_field``).
 
 ``--rig TRAIN.h5``: a training set the demo made on the virtual rig (``evdnerf demo -o OUT`` writes
 ``OUT/train.h5``: 48x36, 17 training + 8 validation turntable views), the demo's training config
@@ -24,7 +27,7 @@ and field (``hinge``), 2 minutes per run, scored on every validation view (poole
 verdict). A lever may keep fewer training views (``"_training_views": N``, spread evenly along
 the ring): the same capture and validation views with fewer training views.
 
-Usage: python bench/bench_quality.py [--full | --demo | --rig TRAIN.h5] [--levers a,b,...] [--seconds S]
+Usage: python bench/bench_quality.py [--full | --demo [--sweeps N] | --rig TRAIN.h5] [--levers a,b,...] [--seconds S]
        [--parallel N] [--replot]
        -> bench/results/quality_proxy.{json,png}, quality.{json,png}, quality_demo.{json,png} or quality_rig.{json,png}
 """
@@ -103,7 +106,14 @@ LEVERS.update({
     # time (the default)
     "rig-camera-grid": {"backbone": "hinge", "camera_grid": True},
     "rig-camera-grid-seed-1": {"backbone": "hinge", "camera_grid": True, "seed": 1},
+    # the demo's fork set with training sweeps (--demo --sweeps N): with and without them
+    "hinge-with-sweeps": {"backbone": "hinge"},
+    "hinge-static-views-only": {"backbone": "hinge", "_static_training_only": True},
+    "hinge-with-sweeps-seed-1": {"backbone": "hinge", "seed": 1},
+    "hinge-static-views-only-seed-1": {"backbone": "hinge", "_static_training_only": True, "seed": 1},
 })
+SWEEP_LEVERS = ["hinge-with-sweeps", "hinge-static-views-only", "hinge-with-sweeps-seed-1",
+                "hinge-static-views-only-seed-1"]
 RIG_LEVERS = ["rig-all-training-views", "rig-9-training-views", "rig-5-training-views",
               "rig-all-training-views-seed-1", "rig-9-training-views-seed-1", "rig-5-training-views-seed-1"]
 #: --demo's levers by default (the demo's config already sets windows and 32 samples).
@@ -118,12 +128,12 @@ DEMO = {"scene": "fork-demo", "seconds": 120.0, "threads": 1, "eval_views": 2, "
 RIG = {"seconds": 120.0, "threads": 1, "eval_views": 8, "final_views": {1: 8, 4: 8}}
 
 
-def demo_setting() -> dict:
+def demo_setting(sweeps: int = 0) -> dict:
     from evdnerf_ros import demo
 
     o = demo.OPTIONS
     return {**DEMO, "views": o.views, "val_views": o.val_views, "resolution": list(o.resolution),
-            "base": dict(demo.TRAIN_CONFIG)}
+            "sweeps": int(sweeps), "base": dict(demo.TRAIN_CONFIG)}
 
 
 def rig_setting(path: Path) -> dict:
@@ -132,15 +142,18 @@ def rig_setting(path: Path) -> dict:
     return {**RIG, "scene": "rig", "set": str(path.resolve()), "base": dict(demo.TRAIN_CONFIG)}
 
 
-def with_training_views(work: Path, train_set: Path, keep: int) -> Path:
+def with_training_views(work: Path, train_set: Path, keep: int | None = None, *,
+                        static_only: bool = False) -> Path:
     """A copy of ``train_set`` (in WORK, made once) keeping ``keep`` of its training views, spread
-    evenly over their order (the first and last kept), and every validation view."""
+    evenly over their order (the first and last kept), or (``static_only``) its static ones, and
+    every validation view."""
     import shutil
 
     import h5py
     import numpy as np
 
-    out = work / f"{train_set.stem}-{int(keep)}-training-views.h5"
+    out = work / (f"{train_set.stem}-static-training-views.h5" if static_only else
+                  f"{train_set.stem}-{int(keep)}-training-views.h5")
     if out.exists():
         return out
     part = out.with_suffix(".part")
@@ -148,9 +161,12 @@ def with_training_views(work: Path, train_set: Path, keep: int) -> Path:
     with h5py.File(part, "r+") as f:
         names = json.loads(f.attrs["view_names"])
         train = [n for n in names if f["views"][n].attrs["split"] == "train"]
-        if not 2 <= keep <= len(train):
-            raise SystemExit(f"{train_set}: cannot keep {keep} of its {len(train)} training views")
-        kept = {train[i] for i in np.round(np.linspace(0, len(train) - 1, int(keep))).astype(int)}
+        if static_only:
+            kept = {n for n in train if "poses" not in f["views"][n]}
+        else:
+            if not 2 <= keep <= len(train):
+                raise SystemExit(f"{train_set}: cannot keep {keep} of its {len(train)} training views")
+            kept = {train[i] for i in np.round(np.linspace(0, len(train) - 1, int(keep))).astype(int)}
         for n in train:
             if n not in kept:
                 del f["views"][n]
@@ -166,12 +182,17 @@ def build_set(work: Path, setting: dict) -> Path:
     if setting.get("scene") == "rig":
         return Path(setting["set"])
     if setting.get("scene") == "fork-demo":
+        import dataclasses
+
         from evdnerf_ros import demo
 
-        out = work / "fork-demo.h5"
+        sweeps = int(setting.get("sweeps", 0))
+        name = "fork-demo" + (f"-{sweeps}-sweeps" if sweeps else "")
+        out = work / f"{name}.h5"
         if not out.exists():
-            simulate_session(demo.SCENE, work / "session-fork-demo", demo.OPTIONS, log=lambda *_: None)
-            run_convert(work / "session-fork-demo", out, offsets="ground-truth", log=lambda *_: None)
+            options = dataclasses.replace(demo.OPTIONS, moving_train_views=sweeps)
+            simulate_session(demo.SCENE, work / f"session-{name}", options, log=lambda *_: None)
+            run_convert(work / f"session-{name}", out, offsets="ground-truth", log=lambda *_: None)
         return out
     n, nv, res = setting["views"], setting["val_views"], setting["resolution"]
     out = work / f"jet-down-{res}-{n}+{nv}.h5"
@@ -205,6 +226,7 @@ def final_scores(field, ts, cfg, box, dynamic, final_views: dict, work: Path, se
 
     from evdnerf_ros.eval.evaluate import evaluate_views, moving_views, static_views
     from evdnerf_ros.eval.truth import TrueScene
+    from evdnerf_ros.field.renderer import resolve_static_world
 
     truth = TrueScene.of(ts)[0]
     final = {}
@@ -212,7 +234,11 @@ def final_scores(field, ts, cfg, box, dynamic, final_views: dict, work: Path, se
     splits = [(f"x{factor}", static_views(ts, ts.val_views)[:int(nviews)], int(factor), "field")
               for factor, nviews in final_views.items()]
     if moving and moving_views(ts, ts.val_views):
-        splits.append(("moving_x1", moving_views(ts, ts.val_views), 1, "flat"))
+        world = resolve_static_world("auto", moving=True, has_region=dynamic is not None)
+        splits.append(("moving_x1", moving_views(ts, ts.val_views), 1, world))
+        if world == "flat" and moving_views(ts, ts.train_views):
+            # a run that saw its static world sweep past: that world beside auto's flat one
+            splits.append(("moving_x1_field", moving_views(ts, ts.val_views), 1, "field"))
     with torch.no_grad():
         for key, views, factor, static_world in splits:
             cache = work / f"truth-{set_stem}-{key}-{len(views)}.pkl"
@@ -247,7 +273,9 @@ def child(args) -> None:
     cfg = merged(BASE, setting.get("base", {}), json.loads(args.config))
     work = Path(args.work)
     keep = cfg.pop("_training_views", None)
-    train_set = with_training_views(work, Path(args.set), keep) if keep else Path(args.set)
+    static_only = cfg.pop("_static_training_only", False)
+    train_set = (with_training_views(work, Path(args.set), keep, static_only=static_only)
+                 if keep or static_only else Path(args.set))
     with TrainingSet(train_set) as ts:
         tr = Trainer(ts, cfg, minutes=setting["seconds"] / 60.0,
                      eval_fn=validation_eval(n_windows=32, max_views=setting["eval_views"]),
@@ -314,6 +342,8 @@ def main(argv=None):
     ap = arg_parser(__doc__, quick="the proxy levers for 30 s each")
     ap.add_argument("--full", action="store_true", help="Jet-Down 128x128, 18+18 views, 5 minutes")
     ap.add_argument("--demo", action="store_true", help="the demo's fork set and training config, 2 minutes")
+    ap.add_argument("--sweeps", type=int, default=0,
+                    help="--demo: training views whose camera sweeps the ring (levers with and without them)")
     ap.add_argument("--rig", type=Path, default=None,
                     help="a virtual-rig demo's train.h5 (evdnerf demo -o OUT: OUT/train.h5), 2 minutes")
     ap.add_argument("--levers", default=None, help="comma-separated lever names (default: all)")
@@ -330,18 +360,20 @@ def main(argv=None):
     if args.child:
         args.threads = int(args.threads)
         return child(args)
-    setting = (rig_setting(args.rig) if args.rig else demo_setting() if args.demo
+    setting = (rig_setting(args.rig) if args.rig else demo_setting(args.sweeps) if args.demo
                else dict(FULL if args.full else PROXY))
     if args.quick:
         setting["seconds"] = 30.0
     if args.seconds:
         setting["seconds"] = args.seconds
-    stem = args.stem or ("quality_rig" if args.rig else "quality_demo" if args.demo
+    stem = args.stem or ("quality_rig" if args.rig else "quality_demo_sweeps" if args.demo and args.sweeps
+                         else "quality_demo" if args.demo
                          else "quality" if args.full else "quality_proxy")
     if args.replot:
         return plot(read_results(args.out, stem), args.out / f"{stem}.png")
     levers = {**LEVERS, **json.loads(args.extra)}
-    names = (args.levers.split(",") if args.levers else RIG_LEVERS if args.rig else DEMO_LEVERS if args.demo
+    names = (args.levers.split(",") if args.levers else RIG_LEVERS if args.rig else SWEEP_LEVERS
+             if args.demo and args.sweeps else DEMO_LEVERS if args.demo
              else list(LEVERS))
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -350,7 +382,8 @@ def main(argv=None):
               "parallel": args.parallel, "baseline": BASE,
               "title": (f"the virtual rig's demo set ({train_set.name}), 48x36, "
                         f"{setting['seconds']:.0f} s per run" if args.rig else
-                        f"the demo's fork set, 96x72, {setting['views']}+{setting['val_views']} views + moving, "
+                        f"the demo's fork set, 96x72, {setting['views']}+{setting['val_views']} views + moving"
+                        + (f", {setting['sweeps']} training sweeps" if setting.get("sweeps") else "") + ", "
                         f"{setting['seconds']:.0f} s per run" if args.demo else
                         f"Jet-Down {setting['resolution']}x{setting['resolution']}, "
                         f"{setting['views']}+{setting['val_views']} views, "

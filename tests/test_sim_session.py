@@ -142,14 +142,17 @@ def test_moving_view_sweeps_the_ring_and_publishes_its_poses(tmp_path):
     the ring; it sees change (events) even while the scene itself is still."""
     from dataclasses import replace
 
-    opts = replace(OPTS, views=1, val_views=0, moving_views=1, moving_arc_deg=30.0,
+    opts = replace(OPTS, views=1, val_views=0, moving_views=1, moving_train_views=1, moving_arc_deg=30.0,
                    frame_rate_hz=0, gt_times=0)
     session = simulate_session("fork", tmp_path / "s", opts, log=lambda *_: None)
-    static, moving = session["views"]
+    static, moving, sweep = session["views"]
     assert moving["name"] == "moving_00" and moving["split"] == "val"
     assert moving["moving_arc_deg"] == 30.0 and static["moving_arc_deg"] is None
     scene = load_scene("fork")
     ring = scene.cameras.ring
+    # a training sweep starts halfway between two training views (one view: opposite it)
+    assert sweep["name"] == "sweep_00" and sweep["split"] == "train" and sweep["moving_arc_deg"] == 30.0
+    assert sweep["azimuth_deg"] == pytest.approx(ring.azimuths_deg("train", 1)[0] + 180.0)
     offset = moving["ground_truth"]["clock_offset_ns"]
     with open_bag(tmp_path / "s" / moving["bag"]) as bag:
         poses = [pose_from_pose_stamped(bag.deserialize(m.data, m.msgtype))

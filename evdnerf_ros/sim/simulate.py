@@ -123,6 +123,9 @@ class SimulationOptions:
     gt_times: int = option(5, "ground-truth intensity/depth renders per view", low=0, high=10_000)
     moving_views: int = option(0, "extra validation views whose camera sweeps along the ring while the scene "
                                   "moves; poses at 1 kHz on the pose topic", low=0, high=10_000)
+    moving_train_views: int = option(0, "extra training views whose camera sweeps along the ring (starting "
+                                        "halfway between two training views): the static world passing by, "
+                                        "which static views never record", low=0, high=10_000)
     moving_arc_deg: float = option(20.0, "azimuth a moving view sweeps over the scene's time",
                                    low=-3600.0, high=3600.0)
     max_clock_offset_s: float = option(5.0, "per-view camera clock offsets are drawn in [0, this) seconds",
@@ -215,7 +218,7 @@ def _view_counts(scene: Scene, options: SimulationOptions) -> tuple[int, int]:
 
 def _n_views(scene: Scene, options: SimulationOptions) -> int:
     train, val = _view_counts(scene, options)
-    return train + val + options.moving_views
+    return train + val + options.moving_views + options.moving_train_views
 
 
 def _workers(options: SimulationOptions, n_views: int) -> int:
@@ -235,7 +238,8 @@ def _check_budget(scene: Scene, camera: PinholeCamera, options: SimulationOption
     run away; the message names the flag to change."""
     duration = scene.end_ns - scene.start_ns
     span = scene.motion_span_ns()
-    moving = duration if options.moving_views else (
+    sweeps = options.moving_views + options.moving_train_views
+    moving = duration if sweeps else (
         0 if span is None else max(0, min(span[1], scene.end_ns) - max(span[0], scene.start_ns)))
     steps = moving // options.min_step_ns + 1
     if steps > MAX_RENDERS_PER_VIEW:
@@ -262,12 +266,12 @@ def _check_budget(scene: Scene, camera: PinholeCamera, options: SimulationOption
          "lower --frame-rate or --resolution (--frame-rate 0 writes no frames)"),
         (options.gt_times * w * h * 18, f"--gt-times {options.gt_times} (ground truth of "
                                         f"{w}x{h} per view)", "lower --gt-times or --resolution"),
-        (min(options.moving_views, 1) * poses * 400,
-         f"--moving-views over a {duration / 1e9:g} s scene ({poses} poses at 1 kHz per view)",
-         "shorten the scene's time span or drop --moving-views"),
+        (min(sweeps, 1) * poses * 400,
+         f"--moving-views / --moving-train-views over a {duration / 1e9:g} s scene ({poses} poses at 1 kHz per view)",
+         "shorten the scene's time span or drop --moving-views / --moving-train-views"),
     ]
     workers = _workers(options, n_views)
-    total = sum(b for b, _, _ in parts) * workers + options.moving_views * poses * 400
+    total = sum(b for b, _, _ in parts) * workers + sweeps * poses * 400
     _, what, fix = max(parts, key=lambda part: part[0])
     check_memory(total, f"simulate: {what} x {workers} parallel view(s)",
                  f"{fix}, or lower --jobs")
@@ -280,22 +284,24 @@ def _view_tasks(scene: Scene, options: SimulationOptions) -> list[ViewTask]:
     tasks = []
     n_train, n_val = _view_counts(scene, options)
     rings = [("train", "view", n_train), ("val", "val", n_val),
-             ("moving", "moving", options.moving_views)]
+             ("moving", "moving", options.moving_views), ("sweep", "sweep", options.moving_train_views)]
     for kind, prefix, n in rings:
         if kind != "train" and n == 0:
             continue
-        # moving views start halfway between two validation views and sweep moving_arc_deg
-        azimuths = (ring.azimuths_deg("val", n) if kind == "moving" else ring.azimuths_deg(kind, n))
-        if kind == "moving":
+        # moving views start halfway between two validation views (training sweeps: two training
+        # views) and sweep moving_arc_deg
+        sweeps = kind in ("moving", "sweep")
+        azimuths = ring.azimuths_deg({"moving": "val", "sweep": "train"}.get(kind, kind), n)
+        if sweeps:
             azimuths = [a + 180.0 / n for a in azimuths]
         for k, az in enumerate(azimuths):
             tasks.append(ViewTask(
-                name=f"{prefix}_{k:02d}", index=len(tasks), split="train" if kind == "train" else "val",
+                name=f"{prefix}_{k:02d}", index=len(tasks), split="val" if kind in ("val", "moving") else "train",
                 azimuth_deg=float(az), T_world_cam=ring.pose_at(az),
                 clock_offset_ns=int(rng.integers(0, max_offset)) if max_offset > 0 else 0,
                 device_offset_ns=int(rng.integers(1_000_000_000, 60_000_000_000)),
                 seed=int(rng.integers(0, 2 ** 31)),
-                arc_deg=float(options.moving_arc_deg) if kind == "moving" else 0.0))
+                arc_deg=float(options.moving_arc_deg) if sweeps else 0.0))
     poses = [(t.name, T) for t in tasks for T in _pose_samples(scene, t)]
     scene.check_cameras([T for _, T in poses], [name for name, _ in poses])
     return tasks

@@ -11,6 +11,12 @@ least one event in that window (``TrainingSet.event_pixels``), the rest through 
 uniform pixel.  A view without events in the window gives a uniform pixel instead.
 The GT log change comes from ``TrainingSet.log_change_stack`` (cached per window set).
 
+A moving training view (a camera on a robot arm, a sweep: ``TrainingSet.poses``) sees the
+static world pass by, which no static view records; its pixel's ray differs at the two window
+edges, so a batch holding such rays carries the end edge's rays too (``RayBatch.moving``,
+``origins_end``, ``dirs_end``; the poses interpolated as ``PoseTrack`` does), and every pixel of
+such a view may change (the dynamic region selects none of its rays).
+
 All randomness comes from the sampler's own ``numpy.random.Generator`` (its state goes
 into checkpoints).
 """
@@ -25,7 +31,9 @@ import torch
 from ..errors import InputError
 from ..events.slicing import frame_at_or_before, window_edges
 from ..field import camera_rays
+from ..field.render import pixel_rays
 from ..geometry.camera import PinholeCamera, common_look_at
+from ..geometry.pose_track import PoseTrack
 
 
 def camera_of(K: np.ndarray, width: int, height: int) -> PinholeCamera:
@@ -84,6 +92,11 @@ class RayBatch:
     #: (2, N) weights of the later frame, the camera's log image being the frames joined linearly
     grid_times: torch.Tensor | None = None
     grid_weights: torch.Tensor | None = None
+    #: rays of moving views (a training set with one): (N,) bool, and every ray's origin and
+    #: direction at the window's end (equal to ``origins`` / ``dirs`` for a static view's ray)
+    moving: torch.Tensor | None = None
+    origins_end: torch.Tensor | None = None
+    dirs_end: torch.Tensor | None = None
 
 
 class RaySampler:
@@ -104,11 +117,21 @@ class RaySampler:
         self.width, self.height = int(train_set.width), int(train_set.height)
         self.P = self.width * self.height
         self.origins, self.dirs = view_rays(train_set, self.views)     # (V, P, 3) each
+        # a moving view's rays come from its trajectory at each batch's window edges
+        self.tracks = []
+        for v in self.views:
+            track = train_set.poses(v)
+            self.tracks.append(None if track is None else
+                               PoseTrack(*track, source=f"{train_set.path}: view {v} poses"))
+        self.moving = np.array([t is not None for t in self.tracks], bool)
+        self.cameras = [camera_of(train_set.K(v), self.width, self.height) for v in self.views]
         # With a dynamic region, uniform rays come only from the pixels whose rays cross
-        # it: every other pixel of a static view predicts exactly no change.
+        # it: every other pixel of a static view predicts exactly no change (a moving view's
+        # may all change).
         self.active = None
         if dynamic is not None:
-            self.active = [torch.nonzero(dynamic.rays_crossing(self.origins[i], self.dirs[i], box),
+            self.active = [np.arange(self.P) if self.moving[i] else
+                           torch.nonzero(dynamic.rays_crossing(self.origins[i], self.dirs[i], box),
                                          as_tuple=False).squeeze(1).numpy()
                            for i in range(len(self.views))]
         self._n = None
@@ -124,6 +147,10 @@ class RaySampler:
             grids = [train_set.frame_grid(v) for v in self.views]
             if all(g is not None for g in grids):
                 self.grids = np.array(grids, np.int64)
+            if self.grids is not None and self.moving.any():
+                raise InputError(f"{train_set.path}: camera_grid with a moving training view "
+                                 f"({self.views[int(np.argmax(self.moving))]}) is not supported; "
+                                 "set camera_grid: false")
 
     def to(self, device) -> "RaySampler":
         """Batches on ``device`` from now on (the rays of every view are copied there once;
@@ -252,12 +279,31 @@ class RaySampler:
         grid_times = grid_weights = None
         if self.grids is not None:
             grid_times, grid_weights = self._frame_times(self._edges[[k, k + span]], vi)
-        return RayBatch(origins=self.origins[vi_t, pix_t], dirs=self.dirs[vi_t, pix_t],
+        origins, dirs = self.origins[vi_t, pix_t], self.dirs[vi_t, pix_t]
+        moving = origins_end = dirs_end = None
+        if self.moving.any():
+            moving = self.moving[vi]
+            origins_end, dirs_end = origins.clone(), dirs.clone()
+            for (o, d), edge in (((origins, dirs), k), ((origins_end, dirs_end), k + span)):
+                self._moving_rays(o, d, vi, pix, int(self._edges[edge]))
+            moving = torch.as_tensor(moving, device=dev)
+        return RayBatch(origins=origins, dirs=dirs, moving=moving, origins_end=origins_end, dirs_end=dirs_end,
                         dl=torch.as_tensor(dl, device=dev),
                         on_event=torch.as_tensor(on_event, device=dev), t0=float(tn[0]), t1=float(tn[1]),
                         window=k, n_windows=self._n, views=vi, pixels=pix, span=span,
                         counts=None if counts is None else torch.as_tensor(counts, device=dev),
                         grid_times=grid_times, grid_weights=grid_weights)
+
+    def _moving_rays(self, origins: torch.Tensor, dirs: torch.Tensor, vi: np.ndarray,
+                     pix: np.ndarray, edge_ns: int) -> None:
+        """Overwrite, in place, the rays of moving views' pixels with their rays at ``edge_ns``."""
+        for v in np.unique(vi[self.moving[vi]]):
+            sel = np.flatnonzero(vi == v)
+            pose = self.tracks[v].poses([edge_ns])
+            o, d = pixel_rays(self.cameras[v], pose, np.zeros(sel.size, np.int64), pix[sel],
+                              device=self.device)
+            idx = torch.as_tensor(sel, device=self.device)
+            origins[idx], dirs[idx] = o, d
 
     def _frame_times(self, edges: np.ndarray, vi: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """((4, N) normalised frame times around the two window edges, (2, N) weights of the later
@@ -292,6 +338,9 @@ class FrameSampler:
         self.views = list(train_set.train_views if views is None else views)
         stacks, times = [], []
         for v in self.views:
+            if train_set.poses(v) is not None:
+                raise InputError(f"{train_set.path}: view {v} is a moving camera; frame supervision "
+                                 "renders static views only (train it on events, or drop the view)")
             fr = train_set.frames(v)
             if fr is None or not len(fr["frames"]):
                 raise InputError(f"{train_set.path}: view {v} has no blurred frames; "

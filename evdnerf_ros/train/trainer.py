@@ -206,24 +206,7 @@ class Trainer:
             loss = ((r["grey"] - batch.grey) ** 2).mean()
             reg = plane_regularisers(self.field, cfg)
             return loss if reg is None else loss + reg
-        render = functools.partial(
-            render_rays, self.field, batch.origins, batch.dirs, box=self.box,
-            n_samples=cfg.n_samples, near=cfg.near, far=cfg.far, background=cfg.background,
-            perturb=cfg.perturb, generator=self.gen, occupancy=self.occupancy,
-            dynamic=self.dynamic, changes_only=self.dynamic is not None)
-        if batch.grid_times is not None:
-            # a frame-based camera: its log image at a window edge joins the frames around it
-            times = list(batch.grid_times)
-            renders = render(times) if cfg.sample_reuse else [render(t) for t in times]
-            logs = [torch.log(r["grey"] + cfg.log_eps) for r in renders]
-            w0, w1 = batch.grid_weights
-            dl_hat = torch.lerp(logs[2], logs[3], w1) - torch.lerp(logs[0], logs[1], w0)
-        else:
-            if cfg.sample_reuse:
-                r0, r1 = render([batch.t0, batch.t1])
-            else:
-                r0, r1 = render(batch.t0), render(batch.t1)
-            dl_hat = torch.log(r1["grey"] + cfg.log_eps) - torch.log(r0["grey"] + cfg.log_eps)
+        dl_hat = self.predicted_change(batch)
         c_pos, c_neg, dl = self.c_pos, self.c_neg, batch.dl
         if self.thresholds is not None:
             c_pos, c_neg = self.thresholds()
@@ -243,6 +226,43 @@ class Trainer:
         if cfg.part_empty_weight:
             loss = loss + cfg.part_empty_weight * self.part_empty_prior()
         return loss
+
+    def predicted_change(self, batch) -> torch.Tensor:
+        """(N,) the field's log change of each ray over the batch's window: a static view's ray
+        rendered at both edges from shared samples (only what can change, with a dynamic region),
+        a moving view's as two rays, the world whole (it sweeps past the camera)."""
+        cfg = self.cfg
+        render = functools.partial(
+            render_rays, self.field, box=self.box, n_samples=cfg.n_samples, near=cfg.near,
+            far=cfg.far, background=cfg.background, perturb=cfg.perturb, generator=self.gen,
+            occupancy=self.occupancy, dynamic=self.dynamic)
+
+        def log(r):
+            return torch.log(r["grey"] + cfg.log_eps)
+
+        def static_change(o, d):
+            static = functools.partial(render, o, d, changes_only=self.dynamic is not None)
+            if batch.grid_times is not None:
+                # a frame-based camera: its log image at a window edge joins the frames around it
+                times = list(batch.grid_times)
+                logs = [log(r) for r in (static(times) if cfg.sample_reuse else [static(t) for t in times])]
+                w0, w1 = batch.grid_weights
+                return torch.lerp(logs[2], logs[3], w1) - torch.lerp(logs[0], logs[1], w0)
+            r0, r1 = static([batch.t0, batch.t1]) if cfg.sample_reuse else (static(batch.t0), static(batch.t1))
+            return log(r1) - log(r0)
+
+        if batch.moving is None:
+            return static_change(batch.origins, batch.dirs)
+        dl_hat = torch.zeros(batch.origins.shape[0], dtype=torch.float32, device=batch.origins.device)
+        moving = torch.nonzero(batch.moving, as_tuple=False).squeeze(1)
+        fixed = torch.nonzero(~batch.moving, as_tuple=False).squeeze(1)
+        if fixed.numel():
+            dl_hat = dl_hat.index_put((fixed,), static_change(batch.origins[fixed], batch.dirs[fixed]))
+        if moving.numel():
+            r0 = render(batch.origins[moving], batch.dirs[moving], batch.t0)
+            r1 = render(batch.origins_end[moving], batch.dirs_end[moving], batch.t1)
+            dl_hat = dl_hat.index_put((moving,), log(r1) - log(r0))
+        return dl_hat
 
     def _random_points(self) -> torch.Tensor:
         return torch.rand(self.cfg.empty_points, 3, generator=self.gen, device=self.device) * 2.0 - 1.0
