@@ -125,3 +125,17 @@ def test_what_a_moving_view_cannot_train(sweep_set):
 
     with pytest.raises(InputError, match="camera_grid with a moving training view \\(moving_00\\)"):
         RaySampler(Gridded(), camera_grid=True)
+
+    # a trajectory that stops before the set's time range ends: refused at once, by name
+    t, T = ts.poses("moving_00")
+    keep = t < t[0] + (t[-1] - t[0]) // 2
+
+    class ShortTrack(Gridded):
+        def frame_grid(self, view):
+            return None
+
+        def poses(self, view):
+            return (t[keep], T[keep]) if view == "moving_00" else ts.poses(view)
+
+    with pytest.raises(InputError, match="view moving_00's camera trajectory covers .* not the set's time range"):
+        RaySampler(ShortTrack())

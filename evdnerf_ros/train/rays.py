@@ -119,10 +119,17 @@ class RaySampler:
         self.origins, self.dirs = view_rays(train_set, self.views)     # (V, P, 3) each
         # a moving view's rays come from its trajectory at each batch's window edges
         self.tracks = []
+        t0, t1 = train_set.time_range
         for v in self.views:
             track = train_set.poses(v)
-            self.tracks.append(None if track is None else
-                               PoseTrack(*track, source=f"{train_set.path}: view {v} poses"))
+            if track is not None:
+                track = PoseTrack(*track, source=f"{train_set.path}: view {v} poses")
+                if track.span_ns[0] > t0 or track.span_ns[1] < t1:
+                    raise InputError(f"{train_set.path}: view {v}'s camera trajectory covers "
+                                     f"[{track.span_ns[0]}, {track.span_ns[1]}] ns, not the set's time range "
+                                     f"[{t0}, {t1}] ns; a window edge outside it has no pose: record the "
+                                     "poses over the whole recording, or make the view a validation view")
+            self.tracks.append(track)
         self.moving = np.array([t is not None for t in self.tracks], bool)
         self.cameras = [camera_of(train_set.K(v), self.width, self.height) for v in self.views]
         # With a dynamic region, uniform rays come only from the pixels whose rays cross
