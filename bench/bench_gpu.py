@@ -13,7 +13,8 @@ CPU, e.g. to check it).  Data: the quality benchmark's Jet-Down set (128x128, 18
 3. **Publisher**: from the default config's run, published events against the simulator's along
    the same path (``eval.published``) at several resolutions, a static novel view and the
    training ring (orbit); the publisher's real-time factor on the device (the truth is simulated
-   on the CPU and not timed).
+   on the CPU and not timed), for the field itself and for the field baked into a grid
+   (``--bakes``: the publisher's ``bake_resolution``, 0 = the field itself).
 
 Usage: python bench/bench_gpu.py [--device cuda] [--seconds S] [--quick] [--work DIR]
        -> bench/results/gpu.{json,png}
@@ -63,6 +64,8 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=None, help="timed iterations per config and device (default 10)")
     ap.add_argument("--resolutions", default=None, help="publisher sizes, comma-separated (default 64,128,256)")
     ap.add_argument("--span", type=float, default=0.1, help="published span in seconds (default 0.1)")
+    ap.add_argument("--bakes", default="0,64", help="publisher bake_resolution values, comma-separated "
+                                                    "(0: the field itself; default 0,64)")
     ap.add_argument("--work", default="/tmp/bench_gpu")
     ap.add_argument("--set", default=None, help="an existing Jet-Down TRAIN.h5 (default: build it in --work)")
     ap.add_argument("--configs", default=None, help="JSON {name: config changes} instead of the default pair")
@@ -132,25 +135,26 @@ def main(argv=None):
         write_json(partial, result)
     # `evdnerf eval` as a user runs it (validation, training and moving splits at the trained
     # windows; the true scene is scored on the CPU either way)
-    if "eval" not in parts:
-        write_results(args.out, args.stem, result, plot)
-        return partial.unlink()
-    t = time.perf_counter()
-    run_eval(work / "run-default", train_h5, max_views=4, factors=(1,), log=lambda *_: None, device=str(dev))
-    result["eval_s_x1"] = time.perf_counter() - t
-    log(f"evdnerf eval (x1, 4 views per split) on {dev}: {result['eval_s_x1']:.1f} s")
-
     run = work / "run-default"
-    for path, size in [("static", s) for s in sizes] + [("orbit", sizes[min(1, len(sizes) - 1)])]:
+    if "eval" in parts:
+        t = time.perf_counter()
+        run_eval(run, train_h5, max_views=4, factors=(1,), log=lambda *_: None, device=str(dev))
+        result["eval_s_x1"] = time.perf_counter() - t
+        log(f"evdnerf eval (x1, 4 views per split) on {dev}: {result['eval_s_x1']:.1f} s")
+
+    bakes = [int(b) for b in args.bakes.split(",")]
+    for path, size, bake in [(p, s, b) for b in bakes for p, s in
+                             [("static", s) for s in sizes] + [("orbit", sizes[min(1, len(sizes) - 1)])]
+                             if "publish" in parts]:
         r = published_vs_true(run, train_h5, n_windows=16, static=path == "static",
                               duration_ns=int(args.span * 1e9), resolution=(size, size),
-                              publisher={"device": str(dev)}, log=lambda *_: None)
-        row = {"path": path, "width": size, "height": size, "rtf": r["publisher"]["rtf"],
+                              publisher={"device": str(dev), "bake_resolution": bake}, log=lambda *_: None)
+        row = {"path": path, "bake": bake, "width": size, "height": size, "rtf": r["publisher"]["rtf"],
                "wall_s": r["publisher"]["wall_s"], "psnr": r["published"]["psnr"],
                "zero_floor": r["zero_floor"]["psnr"], "true_render": r["true_render"]["psnr"],
                "margin_closed": r["margin_closed"]}
         result["publisher"].append(row)
-        log(f"publish {path} {size}x{size} on {dev}: RTF {row['rtf']:.3g}, events PSNR {row['psnr']:.2f} dB "
+        log(f"publish {path} {size}x{size}{f' baked {bake}' if bake else ''} on {dev}: RTF {row['rtf']:.3g}, events PSNR {row['psnr']:.2f} dB "
             f"(floor {row['zero_floor']:.2f}, true render {row['true_render']:.2f})")
         write_json(partial, result)
     write_results(args.out, args.stem, result, plot)
@@ -168,7 +172,8 @@ def plot(result: dict, path: Path) -> None:
     ax[0].set_xlabel(f"training wall time on {result['device']} (s)")
     ax[0].set_ylabel("floor-to-truth margin closed (%, 32 windows)")
     ax[0].set_title(f"{result['set']} on {result.get('gpu') or result['device']}", fontsize=9)
-    ax[0].legend(fontsize=8)
+    if ax[0].get_legend_handles_labels()[0]:
+        ax[0].legend(fontsize=8)
     names = list(result["steps"])
     devs = sorted({d for v in result["steps"].values() for d in v})
     for j, d in enumerate(devs):
@@ -178,11 +183,15 @@ def plot(result: dict, path: Path) -> None:
     ax[1].set_yscale("log")
     ax[1].set_ylabel("ms per training iteration (median)")
     ax[1].set_title(f"step time, CPU = {result['machine']['cpus']} cores", fontsize=9)
-    ax[1].legend(fontsize=8)
-    for camera, marker in (("static", "o"), ("orbit", "s")):
-        rows = [r for r in result["publisher"] if r["path"] == camera]
-        if rows:
-            ax[2].plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker=marker, label=f"{camera} camera")
+    if ax[1].get_legend_handles_labels()[0]:
+        ax[1].legend(fontsize=8)
+    for bake in sorted({r.get("bake", 0) for r in result["publisher"]}):
+        for camera, marker in (("static", "o"), ("orbit", "s")):
+            rows = [r for r in result["publisher"] if r["path"] == camera and r.get("bake", 0) == bake]
+            if rows:
+                ax[2].plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker=marker,
+                           ls="--" if bake else "-",
+                           label=f"{camera} camera, " + (f"baked {bake}" if bake else "the field itself"))
     ax[2].axhline(1, color="k", ls="--", lw=1, label="real time")
     ax[2].set_xscale("log", base=2)
     ax[2].set_yscale("log")
