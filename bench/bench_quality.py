@@ -29,7 +29,8 @@ the ring): the same capture and validation views with fewer training views.
 
 Usage: python bench/bench_quality.py [--full | --demo [--sweeps N] | --rig TRAIN.h5] [--levers a,b,...] [--seconds S]
        [--parallel N] [--replot]
-       -> bench/results/quality_proxy.{json,png}, quality.{json,png}, quality_demo.{json,png} or quality_rig.{json,png}
+       -> bench/results/quality_proxy.{json,png}, quality.{json,png}, quality_demo.{json,png},
+          quality_demo_sweeps.{json,png} (--demo --sweeps N) or quality_rig.{json,png}
 """
 
 from __future__ import annotations
