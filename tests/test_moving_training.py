@@ -110,32 +110,25 @@ def test_training_on_a_moving_view_runs(sweep_h5, tmp_path):
 
 
 def test_what_a_moving_view_cannot_train(sweep_set):
-    with pytest.raises(InputError, match="moving_00.*moving camera"):
-        FrameSampler(sweep_set)
-    # the twin's frame grid is a static camera's: refused with a moving view (set here by hand)
-    sampler_grid = [(8_000_000, 0)] * 5
     ts = sweep_set
 
-    class Gridded:
+    class Altered:
+        """The set with some of its methods replaced."""
+
+        def __init__(self, **methods):
+            self.__dict__.update(methods)
+
         def __getattr__(self, name):
             return getattr(ts, name)
 
-        def frame_grid(self, view):
-            return sampler_grid[0]
-
+    with pytest.raises(InputError, match="moving_00.*moving camera"):
+        FrameSampler(ts)
+    # the twin's frame grid is a static camera's: refused with a moving view
     with pytest.raises(InputError, match="camera_grid with a moving training view \\(moving_00\\)"):
-        RaySampler(Gridded(), camera_grid=True)
-
+        RaySampler(Altered(frame_grid=lambda view: (8_000_000, 0)), camera_grid=True)
     # a trajectory that stops before the set's time range ends: refused at once, by name
     t, T = ts.poses("moving_00")
     keep = t < t[0] + (t[-1] - t[0]) // 2
-
-    class ShortTrack(Gridded):
-        def frame_grid(self, view):
-            return None
-
-        def poses(self, view):
-            return (t[keep], T[keep]) if view == "moving_00" else ts.poses(view)
-
+    short = Altered(poses=lambda view: (t[keep], T[keep]) if view == "moving_00" else ts.poses(view))
     with pytest.raises(InputError, match="view moving_00's camera trajectory covers .* not the set's time range"):
-        RaySampler(ShortTrack())
+        RaySampler(short)
