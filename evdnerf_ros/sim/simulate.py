@@ -238,8 +238,8 @@ def _check_budget(scene: Scene, camera: PinholeCamera, options: SimulationOption
     run away; the message names the flag to change."""
     duration = scene.end_ns - scene.start_ns
     span = scene.motion_span_ns()
-    sweeps = options.moving_views + options.moving_train_views
-    moving = duration if sweeps else (
+    moving_views = options.moving_views + options.moving_train_views
+    moving = duration if moving_views else (
         0 if span is None else max(0, min(span[1], scene.end_ns) - max(span[0], scene.start_ns)))
     steps = moving // options.min_step_ns + 1
     if steps > MAX_RENDERS_PER_VIEW:
@@ -266,12 +266,12 @@ def _check_budget(scene: Scene, camera: PinholeCamera, options: SimulationOption
          "lower --frame-rate or --resolution (--frame-rate 0 writes no frames)"),
         (options.gt_times * w * h * 18, f"--gt-times {options.gt_times} (ground truth of "
                                         f"{w}x{h} per view)", "lower --gt-times or --resolution"),
-        (min(sweeps, 1) * poses * 400,
+        (min(moving_views, 1) * poses * 400,
          f"--moving-views / --moving-train-views over a {duration / 1e9:g} s scene ({poses} poses at 1 kHz per view)",
          "shorten the scene's time span or drop --moving-views / --moving-train-views"),
     ]
     workers = _workers(options, n_views)
-    total = sum(b for b, _, _ in parts) * workers + sweeps * poses * 400
+    total = sum(b for b, _, _ in parts) * workers + moving_views * poses * 400
     _, what, fix = max(parts, key=lambda part: part[0])
     check_memory(total, f"simulate: {what} x {workers} parallel view(s)",
                  f"{fix}, or lower --jobs")
@@ -290,9 +290,9 @@ def _view_tasks(scene: Scene, options: SimulationOptions) -> list[ViewTask]:
             continue
         # moving views start halfway between two validation views (training sweeps: two training
         # views) and sweep moving_arc_deg
-        sweeps = kind in ("moving", "sweep")
+        sweeping = kind in ("moving", "sweep")
         azimuths = ring.azimuths_deg({"moving": "val", "sweep": "train"}.get(kind, kind), n)
-        if sweeps:
+        if sweeping:
             azimuths = [a + 180.0 / n for a in azimuths]
         for k, az in enumerate(azimuths):
             tasks.append(ViewTask(
@@ -301,7 +301,7 @@ def _view_tasks(scene: Scene, options: SimulationOptions) -> list[ViewTask]:
                 clock_offset_ns=int(rng.integers(0, max_offset)) if max_offset > 0 else 0,
                 device_offset_ns=int(rng.integers(1_000_000_000, 60_000_000_000)),
                 seed=int(rng.integers(0, 2 ** 31)),
-                arc_deg=float(options.moving_arc_deg) if sweeps else 0.0))
+                arc_deg=float(options.moving_arc_deg) if sweeping else 0.0))
     poses = [(t.name, T) for t in tasks for T in _pose_samples(scene, t)]
     scene.check_cameras([T for _, T in poses], [name for name, _ in poses])
     return tasks
