@@ -201,19 +201,29 @@ def test_echo_shows_other_message_types(dds_env):
 
 
 def _echo_of(pub, packets, **echo_kw):
-    """The report of an echo of EVENTS started before ``pub`` sends ``packets`` (once matched)."""
+    """The report of an echo of EVENTS that ``pub`` sends ``packets`` to once both ends have matched.
+
+    Both ends, not just the writer: a writer can see the reader before the reader has discovered the
+    writer, and a volatile reader drops what arrives in between (a loaded machine widens that gap)."""
     import threading
 
+    from evdnerf_ros.nodes.echo import Echo
+
     result = {}
-    th = threading.Thread(target=lambda: result.update(rep=run_echo(EVENTS, duration=30, print_fn=lambda *_: None,
-                                                                    **echo_kw)))
-    th.start()
-    deadline = time.monotonic() + 10
-    while not pub.writer.get_publication_matched_status().current_count and time.monotonic() < deadline:
-        time.sleep(0.05)
-    for data in packets:
-        pub.publish_raw(data)
-    th.join(30)
+    node = Echo(EVENTS)
+    try:
+        deadline = time.monotonic() + 20
+        while not (pub.matched() and node.sub.matched()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert pub.matched() and node.sub.matched(), "the echo and the publisher never discovered each other"
+        th = threading.Thread(target=lambda: result.update(rep=node.run(duration=30, print_fn=lambda *_: None,
+                                                                        **echo_kw)))
+        th.start()
+        for data in packets:
+            pub.publish_raw(data)
+        th.join(40)
+    finally:
+        node.shutdown()
     return result["rep"]
 
 
