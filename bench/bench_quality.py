@@ -247,7 +247,8 @@ def final_scores(field, ts, cfg, box, dynamic, final_views: dict, work: Path, se
             _, _, m = evaluate_views(field, ts, views, 32 * factor, box=box,
                                      n_samples=cfg.n_samples, log_eps=cfg.log_eps, near=cfg.near,
                                      far=cfg.far, background=cfg.background, dynamic=dynamic,
-                                     truth=truth, truth_metrics=tm, static_world=static_world)
+                                     truth=truth, truth_metrics=tm, static_world=static_world,
+                                     pixel_samples=cfg.pixel_samples)
             if tm is None and "truth" in m:
                 cache.write_bytes(pickle.dumps(m["truth"]))
             final[key] = {

@@ -409,7 +409,7 @@ def test_absurd_budgets_are_refused_before_anything_is_made(train_h5, tmp_path, 
 
 
 @pytest.mark.parametrize("kw,key", [
-    (dict(rays=1 << 24, n_samples=16384), "lower rays or n_samples"),
+    (dict(rays=1 << 24, n_samples=16384), "lower rays, pixel_samples or n_samples"),
     (dict(field=dict(resolutions=[8192], features=4096)), "lower the sizes in field"),
     (dict(windows=[1 << 20]), "lower windows"),
     (dict(occupancy_resolution=1024), "lower occupancy_resolution"),

@@ -49,7 +49,8 @@ def evaluate_views(field, train_set, views, n_windows: int, *, windows=None, tru
 def evaluate_window_counts(field, train_set, views, counts, *, box, n_samples: int,
                            log_eps: float, near: float = 0.0, far: float = float("inf"),
                            background: float = 0.0, occupancy=None, dynamic=None, windows=None, truth=None,
-                           truth_metrics=None, static_world: str = "field", camera_grid: bool = True) -> list:
+                           truth_metrics=None, static_world: str = "field", camera_grid: bool = True,
+                           pixel_samples: int = 1) -> list:
     """``evaluate_views`` at each window count of ``counts`` (one (pred, gt, metrics) each),
     rendering the field and the true scene once per distinct window end of a view across the
     counts (``eval.windows``).  ``static_world``: auto, field or flat (module docstring; flat
@@ -83,7 +84,7 @@ def evaluate_window_counts(field, train_set, views, counts, *, box, n_samples: i
             static_camera = FieldRenderer(field, cam, box, duration_ns=int(t1 - t0), t_origin_ns=int(t0),
                                           n_samples=n_samples, near=near, far=far, background=background,
                                           occupancy=occupancy, dynamic=dynamic,
-                                          static_world="flat" if flat else "field",
+                                          static_world="flat" if flat else "field", pixel_samples=pixel_samples,
                                           source=f"{train_set.path}: view {v}")
             T = train_set.pose(v)
 
@@ -96,7 +97,7 @@ def evaluate_window_counts(field, train_set, views, counts, *, box, n_samples: i
                 tn = float(train_set.normalized_time(np.array([t], np.int64))[0])
                 return render_image(field, cam, pose_at(t), tn, box, n_samples, near=near, far=far,
                                     background=background, occupancy=occupancy, dynamic=dynamic,
-                                    flat_background=flat_grey)
+                                    flat_background=flat_grey, pixel_samples=pixel_samples)
 
         def log_render(t: int) -> np.ndarray:
             b = render(t)
@@ -148,6 +149,7 @@ def validation_eval(*, n_windows: int | None = None, max_views: int | None = Non
                                  n_samples=ctx["n_samples"], log_eps=ctx["log_eps"],
                                  near=ctx["near"], far=ctx["far"], background=ctx["background"],
                                  occupancy=ctx["occupancy"], dynamic=ctx.get("dynamic"),
+                                 pixel_samples=ctx.get("pixel_samples", 1),
                                  truth=truths["scene"], truth_metrics=truths.get(key))
         out = {"val_psnr": m["continuous"]["psnr"], "val_psnr_zero_floor": m["zero_floor"]["psnr"],
                "val_psnr_quantized": m["quantized"]["psnr"], "val_ssim": m["continuous"]["ssim"],
@@ -169,7 +171,7 @@ def validation_eval(*, n_windows: int | None = None, max_views: int | None = Non
 
 def intensity_renders(field, train_set, view, *, box, n_samples: int, near: float = 0.0,
                       far: float = float("inf"), background: float = 0.0, dynamic=None,
-                      times: int = 3) -> dict:
+                      times: int = 3, pixel_samples: int = 1) -> dict:
     """Grey and depth renders of a static view at ``times`` of its blurred frames' mid-exposure
     times, each brightness-aligned (log space: a gain and gamma) to its frame, as in the
     paper's supplement: events fix intensity only up to that.  Returns {t_ns, frames, grey
@@ -189,7 +191,8 @@ def intensity_renders(field, train_set, view, *, box, n_samples: int, near: floa
     for i in pick:
         tn = float(train_set.normalized_time(np.array([fr["t"][i]], np.int64))[0])
         grey, depth = (render_image(field, cam, T, tn, box, n_samples, near=near, far=far,
-                                    background=background, dynamic=dynamic, key=key).cpu().numpy()
+                                    background=background, dynamic=dynamic, key=key,
+                                    pixel_samples=pixel_samples).cpu().numpy()
                        for key in ("grey", "depth"))
         frame = np.asarray(fr["frames"][i], np.float64)
         aligned, _, _ = brightness_align(np.clip(grey, 0, None), frame, space="log")
@@ -260,7 +263,8 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
             scores = evaluate_window_counts(field, ts, views, [n * f for f in factors], box=box,
                                             n_samples=cfg.n_samples, log_eps=cfg.log_eps,
                                             near=cfg.near, far=cfg.far, background=cfg.background,
-                                            dynamic=dynamic, truth=truth, static_world=static_world)
+                                            dynamic=dynamic, truth=truth, static_world=static_world,
+                                            pixel_samples=cfg.pixel_samples)
             for factor, (pred, gt, m) in zip(factors, scores):
                 key = f"{split}_windows_x{factor}"
                 result[key] = {name: {k: v for k, v in m[name].items() if k != "psnr_per_window"}
@@ -286,7 +290,7 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
         views = splits["val"] or splits["train"]
         renders = intensity_renders(field, ts, views[0], box=box, n_samples=cfg.n_samples,
                                     near=cfg.near, far=cfg.far, background=cfg.background,
-                                    dynamic=dynamic) if views else None
+                                    dynamic=dynamic, pixel_samples=cfg.pixel_samples) if views else None
         if renders is not None:
             result["intensity"] = {"view": views[0], "t_ns": renders["t_ns"],
                                    "aligned_psnr_vs_blurred_frames": renders["psnr"]}

@@ -56,6 +56,30 @@ def camera_rays(camera, T_world_cam, supersample: int = 1, device=None):
             torch.as_tensor(d, dtype=torch.float32, device=device))
 
 
+def subpixels(width: int, pixels, s: int) -> np.ndarray:
+    """(M, s*s) row-major indices, in the image ``s`` times finer (``camera.resized``), of the
+    sub-pixels covering row-major ``pixels`` of an image ``width`` wide (their centres are
+    ``PinholeCamera.ray_directions(s)``'s)."""
+    pixels = np.asarray(pixels, np.int64).reshape(-1)
+    i = np.arange(int(s))
+    rows = (pixels // width)[:, None, None] * s + i[None, :, None]
+    cols = (pixels % width)[:, None, None] * s + i[None, None, :]
+    return (rows * (width * s) + cols).reshape(-1, s * s)
+
+
+def pixel_means(values, s: int):
+    """(M * s*s, ...) values of sub-pixel rays grouped pixel by pixel -> (M, ...) their means:
+    the brightness a pixel gathers over its area (``TrainConfig.pixel_samples``)."""
+    if s == 1:
+        return values
+    return values.reshape(-1, s * s, *values.shape[1:]).mean(1)
+
+
+def finer(camera, s: int):
+    """The camera whose pixels are ``camera``'s sub-pixels (the same field of view, s x s finer)."""
+    return camera if s == 1 else camera.resized(camera.width * s, camera.height * s)
+
+
 def pixel_rays(camera, poses, which, pixels, device=None):
     """World-frame rays of single pixels seen from several poses: pixel ``pixels[i]`` (row-major
     index) from pose ``poses[which[i]]`` ((K, 4, 4) T_world_cam); origins and unit dirs, each
@@ -213,18 +237,23 @@ def render_image(field: DynamicField, camera, T_world_cam, t_norm, box,
                  n_samples: int = 64, *, chunk: int = 8192, near: float = 0.0,
                  far: float = float("inf"), background: float = 0.0, occupancy=None,
                  dynamic=None, changes_only: bool = False, flat_background: float | None = None,
-                 with_grad: bool = False, key: str = "grey"):
+                 with_grad: bool = False, key: str = "grey", pixel_samples: int = 1):
     """Render a full image (H, W) float32 of ``key`` ("grey", "opacity" or "depth").
 
     ``t_norm`` as in ``render_rays`` (a list gives a list of images from shared samples).
     Deterministic (bin-centre samples); chunked over rays; no autograd unless
-    ``with_grad``.
+    ``with_grad``.  ``pixel_samples``: each pixel the mean of that many sub-pixel rays per side.
     """
     multi = isinstance(t_norm, (list, tuple))
     times = list(t_norm) if multi else [t_norm]
     from ..device import module_device
 
-    o, d = camera_rays(camera, T_world_cam, device=module_device(field))     # the field's device
+    sub = int(pixel_samples)
+    o, d = camera_rays(finer(camera, sub), T_world_cam, device=module_device(field))     # the field's device
+    if sub > 1:                        # rays grouped pixel by pixel
+        order = torch.as_tensor(subpixels(camera.width, np.arange(camera.width * camera.height), sub).reshape(-1),
+                                device=o.device)
+        o, d = o[order], d[order]
     parts: list[list[torch.Tensor]] = [[] for _ in times]
     with torch.set_grad_enabled(with_grad):
         for s in range(0, o.shape[0], chunk):
@@ -234,5 +263,5 @@ def render_image(field: DynamicField, camera, T_world_cam, t_norm, box,
                               flat_background=flat_background)
             for k, r in enumerate(res):
                 parts[k].append(r[key])
-    imgs = [torch.cat(p).reshape(camera.height, camera.width) for p in parts]
+    imgs = [pixel_means(torch.cat(p), sub).reshape(camera.height, camera.width) for p in parts]
     return imgs if multi else imgs[0]

@@ -73,8 +73,8 @@ from ..errors import InputError
 from ..renderer import CameraRenderer
 from .base import as_time_column
 from .occupancy import cells_box
-from .render import (background_grey, camera_rays, flat_background, normalize_points, pixel_rays,
-                     ray_box_intersect, sample_along_rays, volume_weights)
+from .render import (background_grey, camera_rays, finer, flat_background, normalize_points, pixel_means,
+                     pixel_rays, ray_box_intersect, sample_along_rays, subpixels, volume_weights)
 
 #: What a ray sees outside the dynamic region (module docstring).
 STATIC_WORLDS = ("field", "flat")
@@ -118,7 +118,9 @@ class FieldRenderer(CameraRenderer):
                  n_samples: int = 64, near: float = 0.0, far: float = float("inf"),
                  background: float = 0.0, occupancy=None, dynamic=None, leave_out: bool = True,
                  reuse_static: bool = True, static_world: str = "field", chunk: int = 16384,
-                 device=None, source: str = "trained field"):
+                 device=None, source: str = "trained field", pixel_samples: int = 1):
+        """``pixel_samples``: each pixel the mean of that many sub-pixel rays per side (the run's
+        ``TrainConfig.pixel_samples``)."""
         from ..device import module_device, resolve_device
 
         if isinstance(duration_ns, bool) or not isinstance(duration_ns, (int, np.integer)) \
@@ -130,6 +132,10 @@ class FieldRenderer(CameraRenderer):
         self.device = module_device(field) if device is None else resolve_device(device, f"{source}: device")
         self.field = field.to(self.device)
         self.camera = camera
+        if not 1 <= int(pixel_samples) <= 8:
+            raise InputError(f"{source}: pixel_samples must be 1..8 rays per pixel side, got {pixel_samples}")
+        self.pixel_samples = int(pixel_samples)
+        self.ray_camera = finer(camera, self.pixel_samples)      # whose pixels the rays go through
         self.box = np.asarray(box, np.float64)
         self.duration_ns = int(duration_ns)
         self.t_origin_ns = int(t_origin_ns)
@@ -186,7 +192,7 @@ class FieldRenderer(CameraRenderer):
         if self.reuse_static and self._plan_cache is not None and \
                 float(np.abs(self._plan_cache[0] - key).max()) <= POSE_SAME:
             return self._plan_cache[1:]
-        o, d = camera_rays(self.camera, T, device=self.device)
+        o, d = camera_rays(self.ray_camera, T, device=self.device)
         n = o.shape[0]
         backdrop, rays = self._backdrop_and_rays(o, d)
         plans = [p for p in (self._plan_chunk(o[j], d[j], j, backdrop[j]) for j in torch.split(rays, self.chunk))
@@ -349,8 +355,8 @@ class FieldRenderer(CameraRenderer):
 
         tn = self.normalized_time(t_ns)
         T = check_rigid(T_world_cam, "T_world_cam")
-        cam = self.camera
-        n = cam.width * cam.height
+        cam, s = self.camera, self.pixel_samples
+        n = cam.width * cam.height * s * s
         with torch.no_grad():
             plans, backdrop = self._plan(T)
             out = backdrop.clone()
@@ -363,7 +369,7 @@ class FieldRenderer(CameraRenderer):
             for p in plans:
                 self._play(p, out, decode)
         self.rays_total += n
-        img = out.reshape(cam.height, cam.width).cpu().numpy().astype(np.float32)
+        img = out.reshape(cam.height, s, cam.width, s).mean((1, 3)).cpu().numpy().astype(np.float32)
         return np.maximum(img, 0.0)
 
     def _play(self, p: _ChunkPlan, out: torch.Tensor, decode) -> None:
@@ -408,10 +414,18 @@ class FieldRenderer(CameraRenderer):
         tn = torch.from_numpy(self.normalized_times(t_ns)).to(self.device)
         if tn.numel() != poses.shape[0]:
             raise InputError(f"{self.source}: {tn.numel()} times for {poses.shape[0]} poses")
+        s = self.pixel_samples
+        if s > 1:                  # each pixel's sub-pixel rays (pixels of ray_camera), then their mean
+            grey = self._render_rays(poses, tn, np.repeat(which, s * s), subpixels(self.camera.width, pixels, s).reshape(-1))
+            return pixel_means(grey, s)
+        return self._render_rays(poses, tn, which, pixels)
+
+    def _render_rays(self, poses, tn, which, pixels) -> np.ndarray:
+        """``render_pixels`` of pixels of ``ray_camera`` (checked, times normalised)."""
         if self.compiled_rays:
             return self._render_pixels_compiled(poses, tn, which, pixels)
         with torch.no_grad():
-            o, d = pixel_rays(self.camera, poses, which, pixels, device=self.device)
+            o, d = pixel_rays(self.ray_camera, poses, which, pixels, device=self.device)
             ray_time = tn[torch.as_tensor(which, device=self.device)]
             out, rays = self._backdrop_and_rays(o, d)
             out = out.clone()
@@ -431,12 +445,12 @@ class FieldRenderer(CameraRenderer):
         if self.flat_grey is not None:
             return np.full(m, self.flat_grey)
         with torch.no_grad():
-            _, d = pixel_rays(self.camera, poses, which, pixels)
+            _, d = pixel_rays(self.ray_camera, poses, which, pixels)
             return torch.as_tensor(background_grey(self.field, d, self.background)).expand(m).numpy()
 
     def _camera_dirs(self) -> np.ndarray:
         if self._cam_dirs is None:
-            self._cam_dirs = self.camera.ray_directions(1).reshape(-1, 3)
+            self._cam_dirs = self.ray_camera.ray_directions(1).reshape(-1, 3)
         return self._cam_dirs
 
     def _render_pixels_compiled(self, poses, tn, which, pixels) -> np.ndarray:

@@ -29,7 +29,7 @@ RESUME_FREE_KEYS = ("eval_every", "checkpoint_every", "log_every")
 #: Keys added after runs were first saved, with the value that keeps such a run what it was: a
 #: saved config (a checkpoint's) that lacks one gets this value, not today's default.
 ADDED_KEYS = {"background_cells": 0, "span_fraction": 0.0, "empty_weight": 0.0, "part_empty_weight": 0.0,
-              "camera_grid": False}
+              "camera_grid": False, "pixel_samples": 1}
 
 #: Options whose default depends on the backbone (None or left out: the backbone's value).
 #: ``rigid``: its learned poses settle only as the learning rate decays, and its part is sampled
@@ -66,6 +66,10 @@ class TrainConfig:
     n_samples: int | None = None
     """Samples per ray inside the scene box (stratified during training); None: the
     backbone's (48; ``rigid`` 64)."""
+    pixel_samples: int = 1
+    """Rays per pixel side: a pixel's brightness is the mean of its ``pixel_samples`` x
+    ``pixel_samples`` sub-pixel rays' (the light its area gathers, as the simulator renders
+    it), in training, evaluation and publishing alike; 1: one ray through its centre."""
     box: list | None = None
     """Scene box [[xmin, ymin, zmin], [xmax, ymax, zmax]] in metres; None: the training
     set's ``scene_bounds`` if present, else a cube around the views' common look-at point

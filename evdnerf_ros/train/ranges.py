@@ -27,6 +27,7 @@ BIG = 10 ** 12          # iteration-like counts: far beyond any run, still finit
 #: key -> (low, high, kind, low_open); kind "int" or "float"; None allowed where noted below.
 NUMBERS = {
     "n_samples": (1, 16384, "int", False),
+    "pixel_samples": (1, 8, "int", False),
     "box_fraction": (0.0, 100.0, "float", True),
     "near": (0.0, 1e9, "float", False),
     "far": (0.0, 1e12, "float", True),
@@ -162,6 +163,8 @@ def check_config(cfg, source: str = "training config") -> None:
                                       f"got {cfg.background_cells}")
     if cfg.learn_thresholds and cfg.supervision != "events":
         name("learn_thresholds").fail("needs supervision: events")
+    if cfg.pixel_samples > 1 and cfg.supervision != "events":
+        name("pixel_samples").fail("needs supervision: events (frames are fitted one ray per pixel); set it to 1")
     from ..field.part import PartField
     if cfg.part_empty_weight and not issubclass(BACKBONES[cfg.backbone], PartField):
         name("part_empty_weight").fail(f"is the moving part's prior, and a {cfg.backbone} field has no part; "
@@ -295,10 +298,11 @@ def memory_estimates(cfg, *, views: int, pixels: int) -> list[tuple[float, str, 
     # parameter, gradient, two Adam moments, the checkpoint's copy and its serialised bytes
     out.append((24.0 * n_params, f"the {cfg.backbone} field ({n_params:,} parameters, field: "
                 f"{cfg.field or 'defaults'})", "lower the sizes in field"))
-    samples = float(cfg.rays) * cfg.n_samples
+    sub = cfg.pixel_samples ** 2
+    samples = float(cfg.rays) * sub * cfg.n_samples
     out.append((samples * bytes_per_sample(cfg),
-                f"one iteration's {cfg.rays} rays x {cfg.n_samples} samples",
-                "lower rays or n_samples"))
+                f"one iteration's {cfg.rays} rays x {sub} per pixel x {cfg.n_samples} samples",
+                "lower rays, pixel_samples or n_samples"))
     if cfg.supervision == "events":
         per = 24 if cfg.learn_thresholds else 12     # float32 log change (+ counts) and scratch
         if cfg.span_fraction:

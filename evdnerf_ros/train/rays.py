@@ -31,7 +31,7 @@ import torch
 from ..errors import InputError
 from ..events.slicing import frame_at_or_before, window_edges
 from ..field import camera_rays
-from ..field.render import pixel_rays
+from ..field.render import finer, pixel_rays, subpixels
 from ..geometry.camera import PinholeCamera, common_look_at
 from ..geometry.pose_track import PoseTrack
 
@@ -56,11 +56,17 @@ def default_box(train_set, fraction: float = 0.35) -> np.ndarray:
     return np.stack([target - half, target + half])
 
 
-def view_rays(train_set, views) -> tuple[torch.Tensor, torch.Tensor]:
-    """Origins and unit directions of every pixel of each view, (V, H*W, 3) float32 each."""
-    o, d = zip(*(camera_rays(camera_of(train_set.K(v), train_set.width, train_set.height),
+def view_rays(train_set, views, pixel_samples: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """Origins and unit directions of every pixel of each view, (V, H*W, 3) float32 each; with
+    ``pixel_samples`` s > 1 each pixel's s x s sub-pixel rays, (V, H*W, s*s, 3)."""
+    s = int(pixel_samples)
+    o, d = zip(*(camera_rays(finer(camera_of(train_set.K(v), train_set.width, train_set.height), s),
                              train_set.pose(v)) for v in views))
-    return torch.stack(o), torch.stack(d)
+    o, d = torch.stack(o), torch.stack(d)
+    if s > 1:
+        order = torch.as_tensor(subpixels(train_set.width, np.arange(train_set.width * train_set.height), s))
+        o, d = o[:, order], d[:, order]
+    return o, d
 
 
 def _pick_per_view(pix: np.ndarray, vi: np.ndarray, u: np.ndarray, candidates) -> None:
@@ -85,6 +91,9 @@ class RayBatch:
     n_windows: int
     views: np.ndarray          # (N,) view index into the sampler's view list
     pixels: np.ndarray         # (N,) flat pixel index
+    #: rays per pixel side (``TrainConfig.pixel_samples``); above 1, ``origins`` / ``dirs`` (and
+    #: the ``_end`` pair) are (N, s*s, 3): each pixel's sub-pixel rays
+    pixel_samples: int = 1
     counts: torch.Tensor | None = None  # (N, 2) (positive, negative) event counts, when kept
     span: int = 1              # consecutive windows the batch spans
     #: a frame-based camera (``camera_grid``): each ray's window start and end fall between two
@@ -102,7 +111,7 @@ class RayBatch:
 class RaySampler:
     def __init__(self, train_set, *, views=None, event_ray_fraction: float = 0.5,
                  seed: int = 0, dynamic=None, box=None, keep_counts: bool = False,
-                 camera_grid: bool = False):
+                 camera_grid: bool = False, pixel_samples: int = 1):
         """``keep_counts``: also return each ray's per-polarity event counts (for learned
         thresholds; needs views stored as events).  ``camera_grid``: where the set records that a
         view's camera drew the scene only on a grid of frame times (``TrainingSet.frame_grid``:
@@ -116,7 +125,8 @@ class RaySampler:
         self.rng = np.random.default_rng(seed)
         self.width, self.height = int(train_set.width), int(train_set.height)
         self.P = self.width * self.height
-        self.origins, self.dirs = view_rays(train_set, self.views)     # (V, P, 3) each
+        self.pixel_samples = int(pixel_samples)
+        self.origins, self.dirs = view_rays(train_set, self.views, self.pixel_samples)  # (V, P[, s*s], 3)
         # a moving view's rays come from its trajectory at each batch's window edges
         self.tracks = []
         t0, t1 = train_set.time_range
@@ -132,14 +142,17 @@ class RaySampler:
             self.tracks.append(track)
         self.moving = np.array([t is not None for t in self.tracks], bool)
         self.cameras = [camera_of(train_set.K(v), self.width, self.height) for v in self.views]
+        self.finer_cameras = [finer(c, self.pixel_samples) for c in self.cameras]
         # With a dynamic region, uniform rays come only from the pixels whose rays cross
         # it: every other pixel of a static view predicts exactly no change (a moving view's
         # may all change).
         self.active = None
         if dynamic is not None:
+            # (a pixel whose any sub-pixel ray crosses it)
             self.active = [np.arange(self.P) if self.moving[i] else
-                           torch.nonzero(dynamic.rays_crossing(self.origins[i], self.dirs[i], box),
-                                         as_tuple=False).squeeze(1).numpy()
+                           torch.nonzero(dynamic.rays_crossing(self.origins[i].reshape(-1, 3),
+                                                               self.dirs[i].reshape(-1, 3), box)
+                                         .reshape(self.P, -1).any(1), as_tuple=False).squeeze(1).numpy()
                            for i in range(len(self.views))]
         self._n = None
         self._edges = None
@@ -298,6 +311,7 @@ class RaySampler:
                         dl=torch.as_tensor(dl, device=dev),
                         on_event=torch.as_tensor(on_event, device=dev), t0=float(tn[0]), t1=float(tn[1]),
                         window=k, n_windows=self._n, views=vi, pixels=pix, span=span,
+                        pixel_samples=self.pixel_samples,
                         counts=None if counts is None else torch.as_tensor(counts, device=dev),
                         grid_times=grid_times, grid_weights=grid_weights)
 
@@ -307,10 +321,10 @@ class RaySampler:
         for v in np.unique(vi[self.moving[vi]]):
             sel = np.flatnonzero(vi == v)
             pose = self.tracks[v].poses([edge_ns])
-            o, d = pixel_rays(self.cameras[v], pose, np.zeros(sel.size, np.int64), pix[sel],
-                              device=self.device)
+            sub = subpixels(self.width, pix[sel], self.pixel_samples).reshape(-1)
+            o, d = pixel_rays(self.finer_cameras[v], pose, np.zeros(sub.size, np.int64), sub, device=self.device)
             idx = torch.as_tensor(sel, device=self.device)
-            origins[idx], dirs[idx] = o, d
+            origins[idx], dirs[idx] = o.reshape(origins[idx].shape), d.reshape(dirs[idx].shape)
 
     def _frame_times(self, edges: np.ndarray, vi: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """((4, N) normalised frame times around the two window edges, (2, N) weights of the later

@@ -237,7 +237,8 @@ class TrainedRun:
                              t_origin_ns=t_origin_ns, n_samples=cfg.n_samples, near=cfg.near,
                              far=cfg.far, background=cfg.background, occupancy=self.occupancy,
                              dynamic=self.dynamic, leave_out=leave_out, reuse_static=reuse_static,
-                             static_world=static_world, chunk=chunk, device=dev, source=str(self.run_dir))
+                             static_world=static_world, chunk=chunk, device=dev, source=str(self.run_dir),
+                             pixel_samples=cfg.pixel_samples)
 
     def __repr__(self) -> str:
         return (f"TrainedRun({str(self.run_dir)!r}, iteration={self.iteration}, "

@@ -45,6 +45,7 @@ import torch
 
 from ..errors import EvdnerfError, InputError
 from ..field import DynamicRegion, OccupancyGrid, render_rays
+from ..field.render import pixel_means
 from ..limits import check_number
 from .checkpoint import (CheckpointError, global_rng_states, load_checkpoint, save_checkpoint,
                          set_global_rng_states)
@@ -148,7 +149,7 @@ class Trainer:
             if cfg.dynamic_region and cfg.supervision == "events" else None)
         self.sampler = RaySampler(train_set, event_ray_fraction=cfg.event_ray_fraction, camera_grid=cfg.camera_grid,
                                   seed=cfg.seed, dynamic=self.dynamic, box=self.box,
-                                  keep_counts=cfg.learn_thresholds).to(self.device)
+                                  keep_counts=cfg.learn_thresholds, pixel_samples=cfg.pixel_samples).to(self.device)
         if self.dynamic is not None:     # after the sampler picked its rays on the host
             self.dynamic.to(self.device)
         self.frame_sampler = (FrameSampler(train_set, seed=cfg.seed).to(self.device)
@@ -237,11 +238,12 @@ class Trainer:
             far=cfg.far, background=cfg.background, perturb=cfg.perturb, generator=self.gen,
             occupancy=self.occupancy, dynamic=self.dynamic)
 
-        def log(r):
-            return torch.log(r["grey"] + cfg.log_eps)
+        def log(r):                    # a pixel's brightness: its sub-pixel rays' mean
+            return torch.log(pixel_means(r["grey"], batch.pixel_samples) + cfg.log_eps)
 
         def static_change(o, d):
-            static = functools.partial(render, o, d, changes_only=self.dynamic is not None)
+            static = functools.partial(render, o.reshape(-1, 3), d.reshape(-1, 3),
+                                       changes_only=self.dynamic is not None)
             if batch.grid_times is not None:
                 # a frame-based camera: its log image at a window edge joins the frames around it
                 times = list(batch.grid_times)
@@ -259,8 +261,8 @@ class Trainer:
         if fixed.numel():
             dl_hat = dl_hat.index_put((fixed,), static_change(batch.origins[fixed], batch.dirs[fixed]))
         if moving.numel():
-            r0 = render(batch.origins[moving], batch.dirs[moving], batch.t0)
-            r1 = render(batch.origins_end[moving], batch.dirs_end[moving], batch.t1)
+            r0 = render(batch.origins[moving].reshape(-1, 3), batch.dirs[moving].reshape(-1, 3), batch.t0)
+            r1 = render(batch.origins_end[moving].reshape(-1, 3), batch.dirs_end[moving].reshape(-1, 3), batch.t1)
             dl_hat = dl_hat.index_put((moving,), log(r1) - log(r0))
         return dl_hat
 
@@ -429,6 +431,7 @@ class Trainer:
             line["c_pos"], line["c_neg"] = self.thresholds.values()
         if self.eval_fn is not None:
             ctx = {"train_set": self.ts, "box": self.box, "n_samples": self.cfg.n_samples,
+                   "pixel_samples": self.cfg.pixel_samples,
                    "near": self.cfg.near, "far": self.cfg.far, "background": self.cfg.background,
                    "log_eps": self.cfg.log_eps, "iteration": self.iteration,
                    "windows": self.n_windows(), "occupancy": self.occupancy,
