@@ -69,6 +69,20 @@ def tiny_train_h5(tmp_path_factory):
     return tmp / "t.h5"
 
 
+@pytest.fixture(scope="session")
+def sweep_h5(tiny_train_h5, tmp_path_factory):
+    """The tiny fork set with its moving camera (``moving_00``) made a training view."""
+    import shutil
+
+    import h5py
+
+    out = tmp_path_factory.mktemp("sweep") / "sweep.h5"
+    shutil.copyfile(tiny_train_h5, out)
+    with h5py.File(out, "r+") as f:
+        f["views"]["moving_00"].attrs["split"] = "train"
+    return out
+
+
 def child_pids(pid: int) -> set[int]:
     """Processes whose parent is `pid` (Linux /proc): the workers a signal test watches."""
     kids = set()

@@ -3,8 +3,6 @@ from two rays with the world whole; what it cannot train with."""
 
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
 import torch
@@ -25,18 +23,6 @@ def small_config(**kw):
                 lr_warmup_iters=10, log_every=0, eval_every=0, time_curriculum=0, checkpoint_every=0)
     base.update(kw)
     return TrainConfig(**base)
-
-
-@pytest.fixture(scope="module")
-def sweep_h5(tiny_train_h5, tmp_path_factory):
-    """The tiny fork set with its moving camera (``moving_00``) made a training view."""
-    import h5py
-
-    out = tmp_path_factory.mktemp("sweep") / "sweep.h5"
-    shutil.copyfile(tiny_train_h5, out)
-    with h5py.File(out, "r+") as f:
-        f["views"]["moving_00"].attrs["split"] = "train"
-    return out
 
 
 @pytest.fixture(scope="module")

@@ -3,8 +3,6 @@ of its s x s sub-pixel rays, the same in training, evaluation and publishing."""
 
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
 import torch
@@ -79,18 +77,6 @@ def test_the_renderer_and_its_pixels_agree_with_render_image(field, compiled):
     np.testing.assert_allclose(got, want.reshape(-1)[pixels], atol=2e-5)
     with pytest.raises(InputError, match="pixel_samples must be 1..8"):
         FieldRenderer(field, cam, BOX, duration_ns=10**9, pixel_samples=0)
-
-
-@pytest.fixture(scope="module")
-def sweep_h5(tiny_train_h5, tmp_path_factory):
-    """The tiny fork set with its moving camera (``moving_00``) made a training view."""
-    import h5py
-
-    out = tmp_path_factory.mktemp("sweep_px") / "sweep.h5"
-    shutil.copyfile(tiny_train_h5, out)
-    with h5py.File(out, "r+") as f:
-        f["views"]["moving_00"].attrs["split"] = "train"
-    return out
 
 
 def test_a_batch_carries_each_pixels_subpixel_rays(sweep_h5):
