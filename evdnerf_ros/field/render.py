@@ -80,6 +80,17 @@ def finer(camera, s: int):
     return camera if s == 1 else camera.resized(camera.width * s, camera.height * s)
 
 
+def area_rays(camera, T_world_cam, s: int = 1, device=None):
+    """:func:`camera_rays` of every pixel's s x s sub-pixels, grouped pixel by pixel: origins and
+    unit dirs, each (H*W*s*s, 3) float32 (s = 1: the pixel centres' rays)."""
+    o, d = camera_rays(finer(camera, s), T_world_cam, device=device)
+    if s > 1:
+        order = torch.as_tensor(subpixels(camera.width, np.arange(camera.width * camera.height), s).reshape(-1),
+                                device=o.device)
+        o, d = o[order], d[order]
+    return o, d
+
+
 def pixel_rays(camera, poses, which, pixels, device=None):
     """World-frame rays of single pixels seen from several poses: pixel ``pixels[i]`` (row-major
     index) from pose ``poses[which[i]]`` ((K, 4, 4) T_world_cam); origins and unit dirs, each
@@ -249,11 +260,7 @@ def render_image(field: DynamicField, camera, T_world_cam, t_norm, box,
     from ..device import module_device
 
     sub = int(pixel_samples)
-    o, d = camera_rays(finer(camera, sub), T_world_cam, device=module_device(field))     # the field's device
-    if sub > 1:                        # rays grouped pixel by pixel
-        order = torch.as_tensor(subpixels(camera.width, np.arange(camera.width * camera.height), sub).reshape(-1),
-                                device=o.device)
-        o, d = o[order], d[order]
+    o, d = area_rays(camera, T_world_cam, sub, device=module_device(field))     # the field's device
     parts: list[list[torch.Tensor]] = [[] for _ in times]
     with torch.set_grad_enabled(with_grad):
         for s in range(0, o.shape[0], chunk):

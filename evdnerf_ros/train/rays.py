@@ -30,8 +30,7 @@ import torch
 
 from ..errors import InputError
 from ..events.slicing import frame_at_or_before, window_edges
-from ..field import camera_rays
-from ..field.render import finer, pixel_rays, subpixels
+from ..field.render import area_rays, finer, pixel_rays, subpixels
 from ..geometry.camera import PinholeCamera, common_look_at
 from ..geometry.pose_track import PoseTrack
 
@@ -60,13 +59,10 @@ def view_rays(train_set, views, pixel_samples: int = 1) -> tuple[torch.Tensor, t
     """Origins and unit directions of every pixel of each view, (V, H*W, 3) float32 each; with
     ``pixel_samples`` s > 1 each pixel's s x s sub-pixel rays, (V, H*W, s*s, 3)."""
     s = int(pixel_samples)
-    o, d = zip(*(camera_rays(finer(camera_of(train_set.K(v), train_set.width, train_set.height), s),
-                             train_set.pose(v)) for v in views))
-    o, d = torch.stack(o), torch.stack(d)
-    if s > 1:
-        order = torch.as_tensor(subpixels(train_set.width, np.arange(train_set.width * train_set.height), s))
-        o, d = o[:, order], d[:, order]
-    return o, d
+    o, d = zip(*(area_rays(camera_of(train_set.K(v), train_set.width, train_set.height), train_set.pose(v), s)
+                 for v in views))
+    shape = (len(views), train_set.width * train_set.height) + ((s * s,) if s > 1 else ()) + (3,)
+    return torch.stack(o).reshape(shape), torch.stack(d).reshape(shape)
 
 
 def _pick_per_view(pix: np.ndarray, vi: np.ndarray, u: np.ndarray, candidates) -> None:
