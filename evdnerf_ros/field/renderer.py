@@ -73,7 +73,7 @@ from ..errors import InputError
 from ..renderer import CameraRenderer
 from .base import as_time_column
 from .occupancy import cells_box
-from .render import (background_grey, camera_rays, finer, flat_background, normalize_points, pixel_means,
+from .render import (area_rays, background_grey, finer, flat_background, normalize_points, pixel_means,
                      pixel_rays, ray_box_intersect, sample_along_rays, subpixels, volume_weights)
 
 #: What a ray sees outside the dynamic region (module docstring).
@@ -192,7 +192,7 @@ class FieldRenderer(CameraRenderer):
         if self.reuse_static and self._plan_cache is not None and \
                 float(np.abs(self._plan_cache[0] - key).max()) <= POSE_SAME:
             return self._plan_cache[1:]
-        o, d = camera_rays(self.ray_camera, T, device=self.device)
+        o, d = area_rays(self.camera, T, self.pixel_samples, device=self.device)
         n = o.shape[0]
         backdrop, rays = self._backdrop_and_rays(o, d)
         plans = [p for p in (self._plan_chunk(o[j], d[j], j, backdrop[j]) for j in torch.split(rays, self.chunk))
@@ -369,7 +369,7 @@ class FieldRenderer(CameraRenderer):
             for p in plans:
                 self._play(p, out, decode)
         self.rays_total += n
-        img = out.reshape(cam.height, s, cam.width, s).mean((1, 3)).cpu().numpy().astype(np.float32)
+        img = pixel_means(out, s).reshape(cam.height, cam.width).cpu().numpy().astype(np.float32)
         return np.maximum(img, 0.0)
 
     def _play(self, p: _ChunkPlan, out: torch.Tensor, decode) -> None:
