@@ -16,7 +16,8 @@ the chosen combination.
 ``--demo``: the demo's simulated fork set (``evdnerf demo --source simulate``: 96x72, 4 training
 + 2 validation views and a moving camera), the demo's training config as the baseline, 2 minutes
 per run; the final scores add the pooled margin and the moving camera (its static world as
-``evdnerf eval`` resolves ``auto``: flat).  ``--sweeps N`` adds N training views whose camera
+``evdnerf eval`` resolves ``auto``: flat).  ``--views N`` puts N training views on the ring instead of 4 (the same validation views and
+moving camera).  ``--sweeps N`` adds N training views whose camera
 sweeps the ring (``evdnerf simulate --moving-train-views``); a lever
 ``"_static_training_only": true`` trains on the same set without them; a run that trained on
 sweeps is scored on the moving camera with its own static world too (``moving_x1_field``).
@@ -129,11 +130,11 @@ DEMO = {"scene": "fork-demo", "seconds": 120.0, "threads": 1, "eval_views": 2, "
 RIG = {"seconds": 120.0, "threads": 1, "eval_views": 8, "final_views": {1: 8, 4: 8}}
 
 
-def demo_setting(sweeps: int = 0) -> dict:
+def demo_setting(sweeps: int = 0, views: int | None = None) -> dict:
     from evdnerf_ros import demo
 
     o = demo.OPTIONS
-    return {**DEMO, "views": o.views, "val_views": o.val_views, "resolution": list(o.resolution),
+    return {**DEMO, "views": int(views or o.views), "val_views": o.val_views, "resolution": list(o.resolution),
             "sweeps": int(sweeps), "base": dict(demo.TRAIN_CONFIG)}
 
 
@@ -187,11 +188,12 @@ def build_set(work: Path, setting: dict) -> Path:
 
         from evdnerf_ros import demo
 
-        sweeps = int(setting.get("sweeps", 0))
-        name = "fork-demo" + (f"-{sweeps}-sweeps" if sweeps else "")
+        sweeps, views = int(setting.get("sweeps", 0)), int(setting["views"])
+        name = ("fork-demo" + (f"-{views}-views" if views != demo.OPTIONS.views else "")
+                + (f"-{sweeps}-sweeps" if sweeps else ""))
         out = work / f"{name}.h5"
         if not out.exists():
-            options = dataclasses.replace(demo.OPTIONS, moving_train_views=sweeps)
+            options = dataclasses.replace(demo.OPTIONS, views=views, moving_train_views=sweeps)
             simulate_session(demo.SCENE, work / f"session-{name}", options, log=lambda *_: None)
             run_convert(work / f"session-{name}", out, offsets="ground-truth", log=lambda *_: None)
         return out
@@ -346,6 +348,9 @@ def main(argv=None):
     ap.add_argument("--demo", action="store_true", help="the demo's fork set and training config, 2 minutes")
     ap.add_argument("--sweeps", type=int, default=0,
                     help="--demo: training views whose camera sweeps the ring (levers with and without them)")
+    ap.add_argument("--views", type=int, default=None,
+                    help="--demo: training views on the fork's ring (default the demo's 4), the same validation "
+                         "views and moving camera")
     ap.add_argument("--rig", type=Path, default=None,
                     help="a virtual-rig demo's train.h5 (evdnerf demo -o OUT: OUT/train.h5), 2 minutes")
     ap.add_argument("--levers", default=None, help="comma-separated lever names (default: all)")
@@ -362,7 +367,7 @@ def main(argv=None):
     if args.child:
         args.threads = int(args.threads)
         return child(args)
-    setting = (rig_setting(args.rig) if args.rig else demo_setting(args.sweeps) if args.demo
+    setting = (rig_setting(args.rig) if args.rig else demo_setting(args.sweeps, args.views) if args.demo
                else dict(FULL if args.full else PROXY))
     if args.quick:
         setting["seconds"] = 30.0

@@ -99,6 +99,36 @@ def test_pooled_margin_where_empty_windows_leave_no_mean_margin(tiny_train_h5):
                                                      scores["truth"]["continuous"]["psnr_pooled"]))
 
 
+def test_each_views_pooled_margin_as_if_scored_alone(tiny_train_h5):
+    """Every split reports each view's pooled scores (which viewpoints a field gets wrong): with
+    the split's data range, so the PSNRs shift against a view scored alone, but the margin
+    closed, a ratio of log MSE ratios, is the same as that view's own evaluation."""
+    from evdnerf_ros.eval.evaluate import evaluate_views
+    from evdnerf_ros.field import PlanesField
+    from evdnerf_ros.train.rays import default_box
+
+    with TrainingSet(tiny_train_h5) as ts:
+        truth, why = TrueScene.of(ts)
+        assert truth is not None, why
+        views = list(ts.train_views[:2])
+        assert len(views) == 2
+        field = PlanesField(resolutions=(4,), time_resolution=4, features=2, seed=0)
+        kw = dict(box=default_box(ts), n_samples=4, log_eps=1e-3, truth=truth)
+        _, _, both = evaluate_views(field, ts, views, 8, **kw)
+        assert set(both["per_view"]) == {str(v) for v in views}
+        for v in views:
+            _, _, alone = evaluate_views(field, ts, [v], 8, **kw)
+            pv = both["per_view"][str(v)]
+            assert pv["margin_closed_pooled"] == pytest.approx(alone["margin_closed"]["pooled"], rel=1e-6)
+            shift = 20 * np.log10(both["data_range"] / alone["data_range"])
+            assert pv["psnr_pooled"] == pytest.approx(alone["continuous"]["psnr_pooled"] + shift, abs=1e-6)
+            assert pv["zero_floor_pooled"] == pytest.approx(alone["zero_floor"]["psnr_pooled"] + shift, abs=1e-6)
+        # a cached truth score renders no true images: each view then has no truth of its own
+        _, _, cached = evaluate_views(field, ts, views, 8, truth_metrics=both["truth"], **kw)
+        assert all("truth_pooled" not in pv for pv in cached["per_view"].values())
+        assert cached["per_view"][str(views[0])]["psnr_pooled"] == both["per_view"][str(views[0])]["psnr_pooled"]
+
+
 def _with_truth(src, dst, **changes):
     """A copy of training set ``src`` whose provenance truth record has ``changes``."""
     import json

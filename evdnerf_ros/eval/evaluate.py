@@ -127,7 +127,25 @@ def evaluate_window_counts(field, train_set, views, counts, *, box, n_samples: i
             m["margin_closed"]["pooled"] = margin_closed(m["continuous"]["psnr_pooled"],
                                                          m["zero_floor"]["psnr_pooled"],
                                                          tm["continuous"]["psnr_pooled"])
+        m["per_view"] = per_view_scores(views, preds[c], gts[c], trues[c], m["data_range"])
         out.append((pred, gt, m))
+    return out
+
+
+def per_view_scores(views, preds, gts, trues, data_range: float) -> dict:
+    """{view: pooled events-PSNR of the field, the all-zero floor and (where its images were
+    rendered) the true scene, and the margin closed}, each view's windows pooled and scored with
+    the split's ``data_range``: which viewpoints a field gets wrong (a side of the object no
+    training view lights, a camera far from every training view)."""
+    out = {}
+    for v, pred, gt, true in zip(views, preds, gts, trues):
+        scores = {"psnr_pooled": psnr(pred, gt, data_range),
+                  "zero_floor_pooled": psnr(np.zeros_like(gt), gt, data_range)}
+        if true is not None:
+            scores["truth_pooled"] = psnr(true, gt, data_range)
+            scores["margin_closed_pooled"] = margin_closed(scores["psnr_pooled"], scores["zero_floor_pooled"],
+                                                           scores["truth_pooled"])
+        out[str(v)] = scores
     return out
 
 
@@ -284,6 +302,12 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
                      f"{m['continuous']['psnr_pooled']:.2f}, floor {m['zero_floor']['psnr_pooled']:.2f}, "
                      f"true scene {m['truth']['continuous']['psnr_pooled']:.2f} dB, margin closed "
                      f"{_percent(m['margin_closed']['pooled'])}" if "truth" in m else ""))
+                result[key]["per_view"] = m["per_view"]
+                if len(views) > 1:
+                    for v, pv in m["per_view"].items():
+                        log(f"  {v}: pooled events PSNR {pv['psnr_pooled']:.2f} dB, floor {pv['zero_floor_pooled']:.2f}"
+                            + (f", true scene {pv['truth_pooled']:.2f}, margin closed "
+                               f"{_percent(pv['margin_closed_pooled'])}" if "truth_pooled" in pv else ""))
                 if split == "val" and factor == 1 and image_path is not None:
                     side_by_side(gt, pred, image_path)
                     result["image"] = str(image_path)
