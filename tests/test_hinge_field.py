@@ -205,7 +205,7 @@ def test_the_part_prior_is_the_parts_mean_opacity_and_thins_only_the_part(tiny_t
 
     small = {"backbone": "hinge", "rays": 128, "n_samples": 16, "windows": [8], "window_switch": [],
              "eval_every": 0, "log_every": 0, "checkpoint_every": 0, "empty_points": 256,
-             "field": {"resolutions": [8, 16], "features": 4}}
+             "field": {"resolutions": [8, 16], "features": 4}, "part_box": False}
     with TrainingSet(tiny_train_h5) as ts:
         tr = Trainer(ts, {**small, "part_empty_weight": 1.0}, iters=1, log=lambda *_: None)
         step = float(np.linalg.norm(tr.box[1] - tr.box[0])) / 16
@@ -232,3 +232,152 @@ def test_the_part_prior_is_the_parts_mean_opacity_and_thins_only_the_part(tiny_t
     assert TrainConfig.from_dict({"backbone": "hinge"}, saved=True).part_empty_weight == 0.0
     with pytest.raises(InputError, match="part_empty_weight.*planes field has no part"):
         TrainConfig(backbone="planes", part_empty_weight=0.5)
+
+
+def _swept_region(joint, part_points_m, res=32):
+    """The cells of a (res,)^3 grid over BOX that the part's points (metres, at angle 0) visit
+    at the joint's angles: what a carved dynamic region holds of that part."""
+    pivot = (np.asarray(joint["pivot"]) + 1) / 2 * (BOX[1] - BOX[0]) + BOX[0]
+    k = np.asarray(joint["axis"], float) / np.linalg.norm(joint["axis"])
+    mask = np.zeros((res,) * 3, bool)
+    for theta in np.linspace(min(joint["angles_rad"]), max(joint["angles_rad"]), 200):
+        w = part_points_m - pivot
+        c, s = np.cos(theta), np.sin(theta)
+        world = w * c + np.cross(k, w) * s + np.outer(w @ k, k) * (1 - c) + pivot
+        idx = np.floor((_normalise(world) + 1) / 2 * res).astype(int)
+        mask[tuple(np.clip(idx, 0, res - 1).T)] = True
+    return mask
+
+
+@pytest.mark.parametrize("axis", [(1.0, 0.0, 0.0), (0.6, 0.0, 0.8)])
+def test_the_part_box_holds_the_part_and_is_thin_along_the_joints_axis(axis):
+    """``train.joint.part_box``: from the region a thin blade swings through (+-45 deg), a box
+    in the part's frame that holds every point of the blade (with its cells' margin), far
+    thinner than the scene box along the joint's axis; a speck of region in a corner of the box
+    leaves it unchanged; an empty region has none."""
+    from evdnerf_ros.train.joint import part_box
+
+    joint = _joint(np.radians([-45.0, 45.0]), axis=axis)
+    k = np.asarray(axis) / np.linalg.norm(axis)
+    u = np.cross(k, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(k, u)
+    pivot = np.array([0.0, 0.0, -0.95])
+    a, b, c = np.meshgrid(np.linspace(-0.01, 0.01, 3), np.linspace(-0.1, 0.1, 9), np.linspace(0.05, 0.9, 40))
+    blade = pivot + a.reshape(-1, 1) * k + b.reshape(-1, 1) * u + c.reshape(-1, 1) * v
+    mask = _swept_region(joint, blade)
+    box = np.asarray(part_box(joint, mask))
+    field = HingeField({**joint, "part_box": box.tolist()}, resolutions=(4,), features=2, seed=0)
+    inside = field.part_frame(torch.tensor(_normalise(blade), dtype=torch.float32), torch.tensor([0.5]))
+    assert bool((inside.abs() <= 1).all())          # angle 0 at t = 0.5: the blade in its own frame
+    if axis == (1.0, 0.0, 0.0):                     # the box's x side against the scene's
+        assert (box[1, 0] - box[0, 0]) / 2 < 0.35, box
+    speck = mask.copy()
+    speck[0, 0, 0] = speck[-1, -1, -1] = True
+    np.testing.assert_allclose(part_box(joint, speck), box)
+    assert part_box(joint, np.zeros_like(mask)) is None
+
+
+def test_a_bounded_part_is_empty_outside_its_box_and_maps_its_box_to_the_planes():
+    """With ``joint.part_box`` the part's frame is normalised to that box (its corners land on
+    -1 and 1 of the planes) and the part's density is zero outside it, the world's unchanged."""
+    joint = _joint([0.0, 0.0])
+    box = [[-0.2, -0.3, -0.9], [0.1, 0.4, 0.2]]
+    bounded = HingeField({**joint, "part_box": box}, resolutions=(4,), features=2, seed=0)
+    free = HingeField(joint, resolutions=(4,), features=2, seed=0)
+    corners = torch.tensor(box, dtype=torch.float32)
+    torch.testing.assert_close(bounded.part_frame(corners, torch.tensor([0.5])), torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    x = torch.rand(400, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    t = torch.full((400,), 0.5)
+    out = ~((x >= corners[0]) & (x <= corners[1])).all(1)
+    assert out.any() and (~out).any()
+    with torch.no_grad():
+        d_bounded, _ = bounded(x, t)
+        d_free, _ = free(x, t)
+        world, _ = free.decode_static(free.space_features(x))
+        torch.testing.assert_close(d_bounded[out], world[out])          # the same seed: the same world
+        assert bool((d_bounded[~out] > world[~out]).all())              # the part adds density inside
+        assert bool((d_free[out] > world[out]).all())                   # unbounded: everywhere
+    with pytest.raises(ValueError, match="part_box"):
+        HingeField({**joint, "part_box": [[0, 0, 0], [0, 1, 1]]})
+
+
+def test_a_part_box_run_trains_saves_and_loads_and_is_hinge_only(tiny_train_h5, tmp_path):
+    """``part_box: true``: the trainer cuts the box from its dynamic region into the saved joint,
+    a loaded run has it; other backbones and runs without a dynamic region refuse it by name; a
+    saved config from before it reads as off."""
+    from evdnerf_ros.train.config import TrainConfig
+    from evdnerf_ros.train.run import TrainedRun
+    from evdnerf_ros.train.trainer import run_train
+
+    run_train(tiny_train_h5, tmp_path / "run", config={
+        "backbone": "hinge", "part_box": True, "rays": 64, "n_samples": 16, "eval_every": 0, "log_every": 0,
+        "field": {"resolutions": [8, 16], "features": 4}}, iters=3, log=lambda *_: None, device="cpu")
+    run = TrainedRun.load(tmp_path / "run")
+    assert run.field.part_bounded and run.config.part_box
+    lo, hi = run.field.part_lo, run.field.part_hi
+    assert bool((hi > lo).all()) and float((hi - lo).min()) < 2.0
+    # the part prior stays the part's mean opacity over the scene box: zero outside its own box
+    from evdnerf_ros.io.trainingset import TrainingSet
+    from evdnerf_ros.train.trainer import Trainer
+
+    with TrainingSet(tiny_train_h5) as ts:
+        tr = Trainer(ts, {"backbone": "hinge", "part_box": True, "field": {"resolutions": [8], "features": 2}},
+                     iters=1, log=lambda *_: None)
+        fraction = float(torch.prod((tr.field.part_hi - tr.field.part_lo) / 2))
+        assert 0 < fraction < 1 and tr.field.part_volume_fraction == pytest.approx(fraction)
+        step = float(np.linalg.norm(tr.box[1] - tr.box[0])) / tr.cfg.n_samples
+        tr.field.part_density = lambda x, t: torch.full((x.shape[0],), 2.0)
+        assert float(tr.part_empty_prior()) == pytest.approx(fraction * (1 - np.exp(-2.0 * step)), rel=1e-5)
+    assert TrainConfig.from_dict({"backbone": "hinge"}, saved=True).part_box is False
+    assert TrainConfig(backbone="hinge").part_box == "auto" and TrainConfig(backbone="rigid").part_box is False
+    assert TrainConfig(backbone="hinge", dynamic_region=False).part_box == "auto"     # resolves off: no region
+    assert TrainConfig.from_dict({"backbone": "hinge", "part_box": None}).part_box == "auto"
+    with pytest.raises(InputError, match="part_box: expected true, false or auto"):
+        TrainConfig(backbone="hinge", part_box="yes")
+    with pytest.raises(InputError, match="part_box.*planes field has none"):
+        TrainConfig(backbone="planes", part_box=True)
+    with pytest.raises(InputError, match="part_box.*dynamic region"):
+        TrainConfig(backbone="hinge", part_box=True, dynamic_region=False)
+
+
+def test_part_box_auto_bounds_the_part_where_the_pixels_are_finer_than_the_cells(tiny_train_h5):
+    """``part_box: auto``: the tiny 32x32 set's pixels span ~9.6 cm at the joint, more than the
+    4.4 cm finest cells of its scene box along the axis: off, and the trainer records it; with
+    the views' focal lengths four times longer (2.4 cm pixels) it is on; without a dynamic
+    region, off. The rule itself: footprint (distance / focal length) against cell, either side
+    of it."""
+    import json
+    import shutil
+
+    import h5py
+
+    from evdnerf_ros.io.trainingset import TrainingSet
+    from evdnerf_ros.train.joint import joint_from_training_set, part_box_pays
+    from evdnerf_ros.train.rays import default_box
+    from evdnerf_ros.train.trainer import Trainer
+
+    small = {"backbone": "hinge", "field": {"resolutions": [8, 64], "features": 2}}
+    with TrainingSet(tiny_train_h5) as ts:
+        tr = Trainer(ts, small, iters=1, log=lambda *_: None)
+        assert tr.cfg.part_box is False and not tr.field.part_bounded
+        box = default_box(ts)
+        joint = joint_from_training_set(ts, box)
+        assert not part_box_pays(ts, box, joint, 64)
+        # coarser planes: 8.75 cm cells still below the pixels, 17.5 cm cells above them
+        assert part_box_pays(ts, box, joint, 32) is False and part_box_pays(ts, box, joint, 16) is True
+        assert Trainer(ts, {**small, "dynamic_region": False}, iters=1, log=lambda *_: None).cfg.part_box is False
+    sharp = tiny_train_h5.parent / "sharp.h5"
+    if not sharp.exists():
+        shutil.copyfile(tiny_train_h5, sharp)
+        with h5py.File(sharp, "r+") as f:
+            for name in json.loads(f.attrs["view_names"]):
+                K = f["views"][name]["K"][...]
+                K[0, 0] *= 4
+                K[1, 1] *= 4
+                f["views"][name]["K"][...] = K
+    with TrainingSet(sharp) as ts:
+        box = default_box(ts)
+        assert part_box_pays(ts, box, joint_from_training_set(ts, box), 64)
+        tr = Trainer(ts, small, iters=1, log=lambda *_: None)
+        assert tr.cfg.part_box is True and tr.field.part_bounded

@@ -9,7 +9,9 @@ The part's decoder also reads cos and sin of the angle (``shading``).
 ``joint`` (plain data, saved with the config): ``pivot`` (3, box-normalised), ``axis`` (3, world,
 unit), ``half`` (3, the box's half extents in metres: the rotation is rigid in metres, not in
 normalised units) and ``angles_rad`` (K >= 2 samples of the angle over normalised time 0..1,
-linear between them). ``train.joint`` derives it from a training set's true scene.
+linear between them); optionally ``part_box`` ([[lo], [hi]], box-normalised, in the part's
+frame): the part's planes span only that box and the part is empty outside it (``TrainConfig
+.part_box``). ``train.joint`` derives them from a training set's joint record and dynamic region.
 """
 
 from __future__ import annotations
@@ -21,8 +23,12 @@ import torch
 from .part import PartField, lerp_table
 
 
+#: The space planes' resolutions per scale (static world and part alike) unless a config sets them.
+RESOLUTIONS = (16, 32, 64)
+
+
 class HingeField(PartField):
-    def __init__(self, joint: dict, resolutions: Sequence[int] = (16, 32, 64), features: int = 16,
+    def __init__(self, joint: dict, resolutions: Sequence[int] = RESOLUTIONS, features: int = 16,
                  hidden: int = 64, hidden_layers: int = 1, density_activation: str = "softplus",
                  density_bias: float = -1.0, init_range: tuple = (0.1, 0.5), seed: int | None = None,
                  shading: bool = True, static_time_resolution: int = 0):
@@ -45,6 +51,17 @@ class HingeField(PartField):
         self.register_buffer("axis", axis / axis.norm())
         self.register_buffer("half_extent", half)
         self.register_buffer("angles", angles)
+        box = joint.get("part_box")
+        if box is not None:
+            box = torch.as_tensor(box, dtype=torch.float32)
+            if box.shape != (2, 3) or not bool(torch.isfinite(box).all()) or not bool((box[1] > box[0]).all()):
+                raise ValueError(f"hinge field: joint.part_box must be [[lo x, y, z], [hi x, y, z]] with hi > lo, "
+                                 f"got {joint['part_box']}")
+            self.register_buffer("part_lo", box[0])
+            self.register_buffer("part_hi", box[1])
+        self.part_bounded = box is not None
+        if self.part_bounded:
+            self.part_volume_fraction = float(torch.prod((box[1] - box[0]) / 2.0))
 
     def angle(self, t: torch.Tensor) -> torch.Tensor:
         """The joint angle (radians) at normalised times ``t`` (any shape), linear between samples."""
@@ -52,14 +69,17 @@ class HingeField(PartField):
 
     def part_frame(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """Box-normalised world points -> the moving part's frame (rotated by -angle(t) about
-        the joint, in metres), box-normalised again."""
+        the joint, in metres), box-normalised again (with a ``part_box``: normalised to it)."""
         w = (x - self.pivot) * self.half_extent
         theta = -self.angle(t.reshape(-1))
         c, s = torch.cos(theta).unsqueeze(1), torch.sin(theta).unsqueeze(1)
         k = self.axis.expand_as(w)
         # Rodrigues: w cos + (k x w) sin + k (k . w)(1 - cos)
         rotated = w * c + torch.cross(k, w, dim=1) * s + k * (w @ self.axis).unsqueeze(1) * (1.0 - c)
-        return rotated / self.half_extent + self.pivot
+        p = rotated / self.half_extent + self.pivot
+        if self.part_bounded:
+            p = (p - self.part_lo) / (self.part_hi - self.part_lo) * 2.0 - 1.0
+        return p
 
     def part_inputs(self, t: torch.Tensor) -> torch.Tensor | None:
         if not self.shading:

@@ -60,6 +60,10 @@ class PartField(DynamicField, abc.ABC):
     ``part_inputs`` (the ``part_input_count`` extra inputs of the part's decoder)."""
 
     reuses_space_features = True
+    #: the part's frame spans only its own box, outside which it is empty (``hinge``'s part_box)
+    part_bounded = False
+    #: that box's volume over the scene box's (1: the part's frame spans the scene box)
+    part_volume_fraction = 1.0
 
     def __init__(self, resolutions: Sequence[int], features: int, hidden: int, hidden_layers: int,
                  density_activation: str, density_bias: float, init_range: tuple, seed: int | None,
@@ -105,7 +109,10 @@ class PartField(DynamicField, abc.ABC):
         if t.numel() == 1:
             t = t.expand(x.shape[0])
         ds, gs = self.static.decode(static, t) if self.static_time_resolution else static
-        dm, gm = self._activate(self.moving(self.part_frame(x, t).clamp(-1.0, 1.0), self.part_inputs(t)))
+        p = self.part_frame(x, t)
+        dm, gm = self._activate(self.moving(p.clamp(-1.0, 1.0), self.part_inputs(t)))
+        if self.part_bounded:          # the part is empty outside its own box
+            dm = dm * (p.abs() <= 1.0).all(dim=1)
         density = ds + dm
         grey = (ds * gs + dm * gm) / density.clamp_min(1e-8)
         return density, grey

@@ -169,6 +169,14 @@ def check_config(cfg, source: str = "training config") -> None:
     if cfg.part_empty_weight and not issubclass(BACKBONES[cfg.backbone], PartField):
         name("part_empty_weight").fail(f"is the moving part's prior, and a {cfg.backbone} field has no part; "
                                        "set it to 0 or train backbone hinge or rigid")
+    if not (isinstance(cfg.part_box, bool) or cfg.part_box == "auto"):
+        name("part_box").fail(f"expected true, false or auto, got {show(cfg.part_box)}")
+    if cfg.part_box and cfg.backbone != "hinge":
+        name("part_box").fail(f"bounds the hinge field's part by its joint, and a {cfg.backbone} field has none; "
+                              "set it to false or train backbone hinge")
+    if cfg.part_box is True and not (cfg.dynamic_region and cfg.supervision == "events"):
+        name("part_box").fail("is cut from the dynamic region (dynamic_region: true, supervision: events); "
+                              "set it to false")
     cfg.field = check_field(cfg.backbone, cfg.field, name("field"))
 
 
@@ -345,6 +353,7 @@ def describe_ranges() -> str:
                  "len(windows) - 1 increasing fractions in (0, 1)")
     lines.append(f"  box: null or [[xmin, ymin, zmin], [xmax, ymax, zmax]], |value| <= {MAX_BOX:g}")
     lines.append("  " + ", ".join(BOOLS) + ": true or false")
+    lines.append("  part_box: true, false or auto (null: the backbone's default)")
     for backbone, spec in FIELD_KEYS.items():
         lines.append(f"  field ({backbone}): " + ", ".join(
             f"{k} {_rule_text(r)}" for k, r in spec.items()))

@@ -45,12 +45,13 @@ import torch
 
 from ..errors import EvdnerfError, InputError
 from ..field import DynamicRegion, OccupancyGrid, render_rays
+from ..field.hinge import RESOLUTIONS as HINGE_RESOLUTIONS
 from ..field.render import pixel_means
 from ..limits import check_number
 from .checkpoint import (CheckpointError, global_rng_states, load_checkpoint, save_checkpoint,
                          set_global_rng_states)
 from .config import TrainConfig, _normal, field_from_config, resolve_config
-from .joint import joint_from_training_set
+from .joint import joint_from_training_set, part_box, part_box_pays
 from .interrupts import DeferredInterrupts
 from .losses import bin_loss, mse_loss, no_event_hinge
 from .ranges import NUMBERS, check_training_memory
@@ -118,11 +119,27 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.box = np.asarray(cfg.box, np.float64) if cfg.box is not None else \
             default_box(train_set, cfg.box_fraction)
+        self.dynamic = (DynamicRegion.from_event_footprint(
+            train_set, self.box, resolution=cfg.dynamic_resolution,
+            min_events=cfg.dynamic_min_events, dilate_px=cfg.dynamic_dilate_px,
+            misses=cfg.dynamic_misses)
+            if cfg.dynamic_region and cfg.supervision == "events" else None)
         # the set's joint (hinge) or the moving part's track (rigid) into a copy: a caller's
         # config object stays free of them
         if cfg.backbone == "hinge" and "joint" not in cfg.field:
             cfg = self.cfg = dataclasses.replace(
                 cfg, field={**cfg.field, "joint": joint_from_training_set(train_set, self.box)})
+        if cfg.part_box == "auto":
+            finest = max(cfg.field.get("resolutions", HINGE_RESOLUTIONS))
+            cfg = self.cfg = dataclasses.replace(cfg, part_box=self.dynamic is not None and part_box_pays(
+                train_set, self.box, cfg.field["joint"], finest))
+        if cfg.part_box and "part_box" not in cfg.field["joint"]:
+            box = part_box(cfg.field["joint"], self.dynamic.mask.numpy())
+            if box is None:
+                raise InputError(f"{cfg.source}: part_box: the dynamic region is empty (no training view saw the "
+                                 "part move), so no box holds the part; set part_box: false")
+            cfg = self.cfg = dataclasses.replace(
+                cfg, field={**cfg.field, "joint": {**cfg.field["joint"], "part_box": box}})
         if cfg.backbone == "rigid" and "track" not in cfg.field:
             cfg = self.cfg = dataclasses.replace(cfg, field={**cfg.field, "track": track_from_events(
                 train_set, self.box, resolution=cfg.dynamic_resolution, min_events=cfg.dynamic_min_events,
@@ -142,11 +159,6 @@ class Trainer:
         self.gen = torch.Generator(self.device).manual_seed(cfg.seed + 1)
         self.occupancy = (OccupancyGrid(cfg.occupancy_resolution).to(self.device)
                           if cfg.occupancy_resolution else None)
-        self.dynamic = (DynamicRegion.from_event_footprint(
-            train_set, self.box, resolution=cfg.dynamic_resolution,
-            min_events=cfg.dynamic_min_events, dilate_px=cfg.dynamic_dilate_px,
-            misses=cfg.dynamic_misses)
-            if cfg.dynamic_region and cfg.supervision == "events" else None)
         self.sampler = RaySampler(train_set, event_ray_fraction=cfg.event_ray_fraction, camera_grid=cfg.camera_grid,
                                   seed=cfg.seed, dynamic=self.dynamic, box=self.box,
                                   keep_counts=cfg.learn_thresholds, pixel_samples=cfg.pixel_samples).to(self.device)
@@ -281,11 +293,12 @@ class Trainer:
         return self._mean_opacity(density)
 
     def part_empty_prior(self) -> torch.Tensor:
-        """The moving part's mean opacity at ``empty_points`` uniform random points of its own
-        frame, each at a uniform random time (``part_empty_weight``)."""
+        """The moving part's mean opacity over the scene box at ``empty_points`` uniform random
+        points of its own frame, each at a uniform random time (``part_empty_weight``)."""
         x = self._random_points()
         t = torch.rand(x.shape[0], generator=self.gen, device=self.device)
-        return self._mean_opacity(self.field.part_density(x, t))
+        # over the scene box: a part bounded to its own box is empty outside it
+        return self._mean_opacity(self.field.part_density(x, t)) * self.field.part_volume_fraction
 
     def step(self) -> float | None:
         """One iteration; returns the loss, or None when the step was skipped."""
