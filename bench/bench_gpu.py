@@ -15,6 +15,9 @@ CPU, e.g. to check it).  Data: the quality benchmark's Jet-Down set (128x128, 18
    training ring (orbit); the publisher's real-time factor on the device (the truth is simulated
    on the CPU and not timed), for the field itself and for the field baked into a grid
    (``--bakes``: the publisher's ``bake_resolution``, 0 = the field itself).
+4. **Publisher, steady state** (part ``rtf``): the same publishes without the truth over a longer
+   span (``--rtf-span``, default 1 s), after one untimed publish that loads what the first one
+   compiles: the real-time factor a stream keeps, with renders and render seconds.
 
 Usage: python bench/bench_gpu.py [--device cuda] [--seconds S] [--quick] [--work DIR]
        -> bench/results/gpu.{json,png}
@@ -64,13 +67,17 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=None, help="timed iterations per config and device (default 10)")
     ap.add_argument("--resolutions", default=None, help="publisher sizes, comma-separated (default 64,128,256)")
     ap.add_argument("--span", type=float, default=0.1, help="published span in seconds (default 0.1)")
+    ap.add_argument("--rtf-span", type=float, default=1.0,
+                    help="published span of the steady-state part rtf, seconds (default 1)")
     ap.add_argument("--bakes", default="0,64", help="publisher bake_resolution values, comma-separated "
                                                     "(0: the field itself; default 0,64)")
     ap.add_argument("--work", default="/tmp/bench_gpu")
     ap.add_argument("--set", default=None, help="an existing Jet-Down TRAIN.h5 (default: build it in --work)")
     ap.add_argument("--configs", default=None, help="JSON {name: config changes} instead of the default pair")
-    ap.add_argument("--parts", default="steps,train,eval,publish", help="which parts to run (comma-separated)")
+    ap.add_argument("--parts", default="steps,train,eval,publish,rtf", help="which parts to run (comma-separated)")
     ap.add_argument("--factors", default="1,4,8", help="window factors of the final scores")
+    ap.add_argument("--publish-from", default="default",
+                    help="the config whose run is evaluated and published (default: default)")
     ap.add_argument("--stem", default="gpu", help="results file name")
     ap.add_argument("--replot", action="store_true", help="redraw the PNG from the JSON")
     args = ap.parse_args(argv)
@@ -83,7 +90,7 @@ def main(argv=None):
     import bench_quality
     from evdnerf_ros.device import resolve_device
     from evdnerf_ros.eval.evaluate import run_eval, validation_eval
-    from evdnerf_ros.eval.published import published_vs_true
+    from evdnerf_ros.eval.published import published_vs_true, publisher_cost
     from evdnerf_ros.io.trainingset import TrainingSet
     from evdnerf_ros.train.run import TrainedRun
     from evdnerf_ros.train.trainer import run_train
@@ -102,7 +109,7 @@ def main(argv=None):
     result = {"machine": machine("torch"), "device": str(dev),
               "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
               "torch_cuda": torch.version.cuda, "set": str(train_h5.name), "seconds": seconds,
-              "configs": configs, "steps": {}, "runs": {}, "publisher": []}
+              "configs": configs, "steps": {}, "runs": {}, "publisher": [], "steady": []}
     log = lambda m: print(m, flush=True)  # noqa: E731
 
     with TrainingSet(train_h5) as ts:
@@ -135,7 +142,8 @@ def main(argv=None):
         write_json(partial, result)
     # `evdnerf eval` as a user runs it (validation, training and moving splits at the trained
     # windows; the true scene is scored on the CPU either way)
-    run = work / "run-default"
+    run = work / f"run-{args.publish_from}"
+    result["published_run"] = args.publish_from
     if "eval" in parts:
         t = time.perf_counter()
         run_eval(run, train_h5, max_views=4, factors=(1,), log=lambda *_: None, device=str(dev))
@@ -156,6 +164,21 @@ def main(argv=None):
         result["publisher"].append(row)
         log(f"publish {path} {size}x{size}{f' baked {bake}' if bake else ''} on {dev}: RTF {row['rtf']:.3g}, events PSNR {row['psnr']:.2f} dB "
             f"(floor {row['zero_floor']:.2f}, true render {row['true_render']:.2f})")
+        write_json(partial, result)
+    if "rtf" in parts:
+        publisher_cost(run, train_h5, static=True, duration_ns=int(0.01e9), resolution=(sizes[0], sizes[0]),
+                       publisher={"device": str(dev), "bake_resolution": bakes[-1]})     # untimed: warm-up
+    for path, size, bake in [(p, s, b) for b in bakes for p, s in [("static", s) for s in sizes]
+                             + [("orbit", s) for s in sizes] if "rtf" in parts]:
+        c = publisher_cost(run, train_h5, static=path == "static", duration_ns=int(args.rtf_span * 1e9),
+                           resolution=(size, size), publisher={"device": str(dev), "bake_resolution": bake})
+        row = {"path": path, "bake": bake, "width": size, "height": size, "span_s": args.rtf_span,
+               **{k: c[k] for k in ("rtf", "wall_s", "source_s", "renders", "render_s", "pixels_rendered",
+                                    "events")}}
+        result["steady"].append(row)
+        log(f"steady {path} {size}x{size}{f' baked {bake}' if bake else ''} on {dev}, {args.rtf_span:g} s: "
+            f"RTF {row['rtf']:.3g} ({row['renders']} renders, {row['render_s']:.2f} of {row['wall_s']:.2f} s "
+            "rendering)")
         write_json(partial, result)
     write_results(args.out, args.stem, result, plot)
     partial.unlink()
@@ -192,6 +215,13 @@ def plot(result: dict, path: Path) -> None:
                 ax[2].plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker=marker,
                            ls="--" if bake else "-",
                            label=f"{camera} camera, " + (f"baked {bake}" if bake else "the field itself"))
+    for bake in sorted({r["bake"] for r in result.get("steady", [])}):
+        for camera, marker in (("static", "o"), ("orbit", "s")):
+            rows = [r for r in result["steady"] if r["path"] == camera and r["bake"] == bake]
+            if rows:
+                ax[2].plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker=marker, lw=2.5, alpha=0.6,
+                           ls="--" if bake else "-", label=f"{camera}, " + (f"baked {bake}" if bake else "field")
+                           + f", {rows[0]['span_s']:g} s steady")
     ax[2].axhline(1, color="k", ls="--", lw=1, label="real time")
     ax[2].set_xscale("log", base=2)
     ax[2].set_yscale("log")

@@ -204,3 +204,15 @@ def test_inner_weight_fades_to_zero_at_the_region_boundary():
     assert float(wl.max()) == 1.0 and float(wl[0]) == 0.0
     # at most the steepest slope (2 per cell width, a cell is 0.25 wide) times the step
     assert float(wl.diff().abs().max()) <= 8.0 * (2 / 4000) + 1e-6
+
+
+def test_region_lookups_follow_the_points_device():
+    """A region loaded on the CPU answers points on another device (a GPU field's samples) in
+    both lookups, hard and soft, on that device; the meta device stands in for a GPU here (the
+    soft one once failed there with a device mismatch, found on a GPU)."""
+    region = DynamicRegion(torch.ones(4, 4, 4, dtype=torch.bool))
+    x = torch.zeros(5, 3, device="meta")
+    assert region.query(x).device.type == "meta"
+    assert region.inner_weight(x).device.type == "meta"
+    assert region.inner_weight(torch.zeros(5, 3)).device.type == "cpu"   # and back
+    assert region.mask.device.type == "cpu"                               # the region itself unmoved

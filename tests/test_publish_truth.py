@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from evdnerf_ros.events import make_events
-from evdnerf_ros.eval.published import event_image_stack, first_event_timing, published_vs_true
+from evdnerf_ros.eval.published import event_image_stack, first_event_timing, published_vs_true, publisher_cost
 
 
 @pytest.fixture(scope="module")
@@ -55,6 +55,10 @@ def test_published_vs_true_on_a_tiny_scene(tiny_run, tiny_train_h5):
     again = published_vs_true(tiny_run, tiny_train_h5, n_windows=8, static=True, duration_ns=300_000_000,
                               true_reference=r["reference"], log=lambda *_: None)
     assert again["published"] == r["published"] and again["counts"] == r["counts"]
+    # the publisher alone on the same path (no truth): the same renders and events, its own cost
+    alone = publisher_cost(tiny_run, tiny_train_h5, static=True, duration_ns=300_000_000)
+    assert (alone["events"], alone["renders"]) == (r["publisher"]["events"], r["publisher"]["renders"])
+    assert alone["rtf"] > 0 and alone["wall_s"] > 0
 
 
 def _publish(run, **params):

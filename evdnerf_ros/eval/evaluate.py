@@ -257,7 +257,8 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
 
     dev = resolve_device(device, f"{run_dir}: device")
     run = TrainedRun.load(run_dir)
-    field, cfg, box, iteration, dynamic = run.field.to(dev), run.config, run.box, run.iteration, run.dynamic
+    field, cfg, box, iteration = run.field.to(dev), run.config, run.box, run.iteration
+    dynamic = None if run.dynamic is None else run.dynamic.to(dev)     # this load's own: moved once
     n = int(n_windows or cfg.windows[-1])
     result = {"run": str(run_dir), "train_set": str(train_h5), "iteration": iteration,
               "trained_windows": n, "device": str(dev), "static_world": static_world, "lpips": None,

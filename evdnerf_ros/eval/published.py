@@ -111,19 +111,11 @@ def first_event_timing(pub, true, edges: np.ndarray, width: int, height: int) ->
             "p90_abs_dt_us": float(np.percentile(dt, 90)) if dt.size else None}
 
 
-def published_vs_true(run_dir, train_h5=None, *, n_windows: int = 32, static: bool = False,
-                      duration_ns: int | None = None, resolution=None, publisher: dict | None = None,
-                      truth_publisher: dict | None = None, true_reference=None, log=print) -> dict:
-    """Publish from the run and from the true scene along one path and compare (module docstring).
-
-    ``publisher``: extra node parameters of the published run (the speed-up switches, sampling
-    tolerance, device); ``truth_publisher``: extra parameters of the true run (default: the
-    same sampling).  ``true_reference``: a previous result's ``"reference"`` entry for the same
-    run, path and windows, to skip re-simulating the truth (the benchmark's sweep).
-    """
+def _comparison_path(run_dir, train_h5, *, static: bool, duration_ns: int | None, resolution) -> dict:
+    """What both publishers of the comparison share: the run, its set's truth record and clock
+    (t0, t1, thresholds, the first view's scene time at the origin, eps), the camera, the span,
+    the path (times, poses) and the node parameters common to both runs."""
     from ..io.trainingset import TrainingSet
-    from ..sim.render import SceneRenderer
-    from ..sim.scene import load_scene
     from ..train.run import TrainedRun
 
     run = TrainedRun.load(run_dir)
@@ -159,19 +151,66 @@ def published_vs_true(run_dir, train_h5=None, *, n_windows: int = 32, static: bo
 
         Tm = PoseTrack(t, T, source=f"{run_dir}: orbit")(int((t[0] + t[1]) // 2))
         t, T = np.array([0, span], np.int64), np.stack([Tm, Tm])
-    if n_windows < 1:
-        raise InputError(f"n_windows must be >= 1, got {n_windows}")
     K = cam.K
     common = {"camera.width": cam.width, "camera.height": cam.height,
               "camera.K": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])],
-              "c_pos": c_pos, "c_neg": c_neg, "duration": span / NS, "realtime_factor": 0.0}
+              "c_pos": c_pos, "c_neg": c_neg, "duration": span / NS, "realtime_factor": 0.0,
+              "trajectory_max_gap": max(0.5, float(np.diff(t).max()) / NS * 1.01)}
+    return {"train_h5": train_h5, "record": record, "t0": t0, "t1": t1, "c_pos": c_pos, "c_neg": c_neg,
+            "origin": origin, "eps": eps, "cam": cam, "span": span, "t": t, "T": T, "common": common}
+
+
+def _publish_run(run_dir, path: dict, traj: Path, publisher: dict | None):
+    """The run published along the comparison's path: (report, events)."""
+    return _collect({**path["common"], "run_dir": str(run_dir), "trajectory": str(traj),
+                     "field_duration": (path["t1"] - path["t0"]) / NS, "scene_time_offset": 0.0,
+                     **(publisher or {})})
+
+
+def _cost(rep, publisher: dict | None) -> dict:
+    """The publisher's own cost from its report."""
+    return {"wall_s": rep.wall_seconds, "rtf": rep.rtf, "source_s": rep.source_seconds,
+            "renders": rep.renders, "pixels_rendered": rep.pixels_rendered,
+            "render_s": rep.render_seconds, "rays_rendered": rep.rays_rendered,
+            "rays_total": rep.rays_total, "samples_evaluated": rep.samples_evaluated,
+            "samples_total": rep.samples_total, "events": rep.events,
+            "params": dict(publisher or {})}
+
+
+def publisher_cost(run_dir, train_h5=None, *, static: bool = False, duration_ns: int | None = None,
+                   resolution=None, publisher: dict | None = None) -> dict:
+    """The run published along the comparison's path alone, without the truth (which costs far
+    more than publishing on a GPU): its cost (wall seconds, real-time factor, renders, ...) for
+    spans too long to simulate the truth over in a benchmark."""
+    path = _comparison_path(run_dir, train_h5, static=static, duration_ns=duration_ns, resolution=resolution)
+    with tempfile.TemporaryDirectory() as tmp:
+        rep, _ = _publish_run(run_dir, path, _write_trajectory(Path(tmp) / "trajectory.yaml", path["t"], path["T"]),
+                              publisher)
+    return _cost(rep, publisher)
+
+
+def published_vs_true(run_dir, train_h5=None, *, n_windows: int = 32, static: bool = False,
+                      duration_ns: int | None = None, resolution=None, publisher: dict | None = None,
+                      truth_publisher: dict | None = None, true_reference=None, log=print) -> dict:
+    """Publish from the run and from the true scene along one path and compare (module docstring).
+
+    ``publisher``: extra node parameters of the published run (the speed-up switches, sampling
+    tolerance, device); ``truth_publisher``: extra parameters of the true run (default: the
+    same sampling).  ``true_reference``: a previous result's ``"reference"`` entry for the same
+    run, path and windows, to skip re-simulating the truth (the benchmark's sweep).
+    """
+    from ..sim.render import SceneRenderer
+    from ..sim.scene import load_scene
+
+    if n_windows < 1:
+        raise InputError(f"n_windows must be >= 1, got {n_windows}")
+    path = _comparison_path(run_dir, train_h5, static=static, duration_ns=duration_ns, resolution=resolution)
+    train_h5, record, t0, origin, eps = (path[k] for k in ("train_h5", "record", "t0", "origin", "eps"))
+    c_pos, c_neg, cam, span, t, T, common = (path[k] for k in ("c_pos", "c_neg", "cam", "span", "t", "T", "common"))
     edges = np.linspace(0, span, n_windows + 1).round().astype(np.int64)
     with tempfile.TemporaryDirectory() as tmp:
         traj = _write_trajectory(Path(tmp) / "trajectory.yaml", t, T)
-        common["trajectory_max_gap"] = max(0.5, float(np.diff(t).max()) / NS * 1.01)
-        pub_params = {**common, "run_dir": str(run_dir), "trajectory": str(traj),
-                      "field_duration": (t1 - t0) / NS, "scene_time_offset": 0.0, **(publisher or {})}
-        rep, pub = _collect(pub_params)
+        rep, pub = _publish_run(run_dir, path, traj, publisher)
         if true_reference is None:
             true_params = {**common, "scene": record["scene"], "trajectory": str(traj),
                            "supersample": int(record.get("supersample", 1)),
@@ -210,13 +249,7 @@ def published_vs_true(run_dir, train_h5=None, *, n_windows: int = 32, static: bo
               "margin_closed": margin_closed(m["continuous"]["psnr"], m["zero_floor"]["psnr"],
                                              ref_m["continuous"]["psnr"]),
               "counts": counts, "first_events": first_event_timing(pub, true, edges, cam.width, cam.height),
-              "publisher": {"wall_s": rep.wall_seconds, "rtf": rep.rtf, "source_s": rep.source_seconds,
-                            "renders": rep.renders,
-                            "pixels_rendered": rep.pixels_rendered,
-                            "render_s": rep.render_seconds, "rays_rendered": rep.rays_rendered,
-                            "rays_total": rep.rays_total, "samples_evaluated": rep.samples_evaluated,
-                            "samples_total": rep.samples_total, "events": rep.events,
-                            "params": {k: v for k, v in (publisher or {}).items()}},
+              "publisher": _cost(rep, publisher),
               "true_publisher": {"wall_s": true_reference["wall_s"], "renders": true_reference["renders"]},
               "reference": true_reference}
     log(f"published vs true ({result['path']}, {cam.width}x{cam.height}, {n_windows} windows): events PSNR "
@@ -228,4 +261,4 @@ def published_vs_true(run_dir, train_h5=None, *, n_windows: int = 32, static: bo
     return result
 
 
-__all__ = ["published_vs_true", "event_image_stack", "first_event_timing"]
+__all__ = ["published_vs_true", "publisher_cost", "event_image_stack", "first_event_timing"]

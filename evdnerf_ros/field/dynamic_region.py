@@ -130,9 +130,11 @@ class DynamicRegion:
         linearly to 0 at its boundary (twice the mask's trilinear interpolation between cell
         centres, less one, clamped).  Continuous: a ray sweeping across the boundary fades."""
         mask, vol = getattr(self, "_soft_volume", (None, None))
-        if mask is not self.mask:              # made once per mask (a copy moved to a device has its own)
+        # made once per mask and device: like ``query``, it follows the points' device (a region
+        # loaded on the CPU and queried with a GPU field's points)
+        if mask is not self.mask or vol.device != x.device:
             # grid_sample reads (D, H, W) = (z, y, x); the mask is indexed [x, y, z]
-            vol = self.mask.permute(2, 1, 0).float()[None, None].contiguous()
+            vol = self.mask.to(x.device).permute(2, 1, 0).float()[None, None].contiguous()
             self._soft_volume = (self.mask, vol)
         g = x.to(vol.dtype).reshape(1, 1, 1, -1, 3)
         m = torch.nn.functional.grid_sample(vol, g, mode="bilinear", padding_mode="border", align_corners=False)
