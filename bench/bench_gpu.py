@@ -17,7 +17,8 @@ CPU, e.g. to check it).  Data: the quality benchmark's Jet-Down set (128x128, 18
    (``--bakes``: the publisher's ``bake_resolution``, 0 = the field itself).
 4. **Publisher, steady state** (part ``rtf``): the same publishes without the truth over a longer
    span (``--rtf-span``, default 1 s), after one untimed publish that loads what the first one
-   compiles: the real-time factor a stream keeps, with renders and render seconds.
+   compiles: the real-time factor a stream keeps, with renders and render seconds; the static
+   camera with and without its batched renders (``--prefetch``: the publisher's ``prefetch_levels``).
 
 Usage: python bench/bench_gpu.py [--device cuda] [--seconds S] [--quick] [--work DIR]
        -> bench/results/gpu.{json,png}
@@ -69,6 +70,8 @@ def main(argv=None):
     ap.add_argument("--span", type=float, default=0.1, help="published span in seconds (default 0.1)")
     ap.add_argument("--rtf-span", type=float, default=1.0,
                     help="published span of the steady-state part rtf, seconds (default 1)")
+    ap.add_argument("--prefetch", default="0,3",
+                    help="the publisher's prefetch_levels compared for the static camera in part rtf (default 0,3)")
     ap.add_argument("--bakes", default="0,64", help="publisher bake_resolution values, comma-separated "
                                                     "(0: the field itself; default 0,64)")
     ap.add_argument("--work", default="/tmp/bench_gpu")
@@ -168,17 +171,22 @@ def main(argv=None):
     if "rtf" in parts:
         publisher_cost(run, train_h5, static=True, duration_ns=int(0.01e9), resolution=(sizes[0], sizes[0]),
                        publisher={"device": str(dev), "bake_resolution": bakes[-1]})     # untimed: warm-up
-    for path, size, bake in [(p, s, b) for b in bakes for p, s in [("static", s) for s in sizes]
-                             + [("orbit", s) for s in sizes] if "rtf" in parts]:
+    prefetch = [int(v) for v in args.prefetch.split(",")]
+    for path, size, bake, levels in [(p, s, b, lv) for b in bakes for p, s, lvs in
+                                     [("static", s, prefetch) for s in sizes] + [("orbit", s, [0]) for s in sizes]
+                                     for lv in lvs if "rtf" in parts]:
         c = publisher_cost(run, train_h5, static=path == "static", duration_ns=int(args.rtf_span * 1e9),
-                           resolution=(size, size), publisher={"device": str(dev), "bake_resolution": bake})
+                           resolution=(size, size), publisher={"device": str(dev), "bake_resolution": bake,
+                                                               "prefetch_levels": levels})
         row = {"path": path, "bake": bake, "width": size, "height": size, "span_s": args.rtf_span,
+               "prefetch_levels": levels,
                **{k: c[k] for k in ("rtf", "wall_s", "source_s", "renders", "render_s", "pixels_rendered",
                                     "events")}}
         result["steady"].append(row)
-        log(f"steady {path} {size}x{size}{f' baked {bake}' if bake else ''} on {dev}, {args.rtf_span:g} s: "
+        log(f"steady {path} {size}x{size}{f' baked {bake}' if bake else ''}"
+            f"{f' prefetch {levels}' if path == 'static' else ''} on {dev}, {args.rtf_span:g} s: "
             f"RTF {row['rtf']:.3g} ({row['renders']} renders, {row['render_s']:.2f} of {row['wall_s']:.2f} s "
-            "rendering)")
+            f"rendering, {row['events']} events)")
         write_json(partial, result)
     write_results(args.out, args.stem, result, plot)
     partial.unlink()
@@ -215,13 +223,13 @@ def plot(result: dict, path: Path) -> None:
                 ax[2].plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker=marker,
                            ls="--" if bake else "-",
                            label=f"{camera} camera, " + (f"baked {bake}" if bake else "the field itself"))
-    for bake in sorted({r["bake"] for r in result.get("steady", [])}):
-        for camera, marker in (("static", "o"), ("orbit", "s")):
-            rows = [r for r in result["steady"] if r["path"] == camera and r["bake"] == bake]
-            if rows:
-                ax[2].plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker=marker, lw=2.5, alpha=0.6,
-                           ls="--" if bake else "-", label=f"{camera}, " + (f"baked {bake}" if bake else "field")
-                           + f", {rows[0]['span_s']:g} s steady")
+    steady = result.get("steady", [])
+    for bake, camera, levels in sorted({(r["bake"], r["path"], r.get("prefetch_levels", 0)) for r in steady}):
+        rows = [r for r in steady if (r["bake"], r["path"], r.get("prefetch_levels", 0)) == (bake, camera, levels)]
+        ax[2].plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker="o" if camera == "static" else "s",
+                   lw=2.5, alpha=0.6, ls="--" if bake else "-",
+                   label=f"{camera}, " + (f"baked {bake}" if bake else "field")
+                   + (f", prefetch {levels}" if camera == "static" else "") + f", {rows[0]['span_s']:g} s steady")
     ax[2].axhline(1, color="k", ls="--", lw=1, label="real time")
     ax[2].set_xscale("log", base=2)
     ax[2].set_yscale("log")

@@ -131,6 +131,33 @@ def test_leave_out_switches_change_cost_not_events(tmp_path):
     np.testing.assert_array_equal(a[1], b[1])
 
 
+def test_batched_renders_change_cost_not_events(tmp_path):
+    """A static camera's midpoints rendered ahead in batches (``prefetch_levels``) feed the same
+    frames: the same events, for the field and for it baked; ``render_times`` is K ``render``s."""
+    from evdnerf_ros.eval.published import _write_trajectory
+    from evdnerf_ros.geometry.pose_track import PoseTrack
+    from evdnerf_ros.train.run import TrainedRun
+
+    run = _changing_run(tmp_path)
+    trained = TrainedRun.load(run)
+    t, T = trained.orbit(10**9)
+    Tm = PoseTrack(t, T)(int((t[0] + t[1]) // 2))
+    static = _write_trajectory(tmp_path / "static.yaml", [0, 250_000_000], [Tm, Tm])
+    for bake in (0, 16):
+        renderer = trained.renderer(trained.train_camera, duration_ns=10**9, bake_resolution=bake)
+        times = np.array([0, 130_000_000, 131_000_000, 700_000_000], np.int64)
+        many = renderer.render_times(Tm, times)
+        one = np.stack([renderer.render(Tm, int(ti)) for ti in times])
+        assert many.shape == one.shape and not np.allclose(one[0], one[-1])     # the field changes
+        np.testing.assert_allclose(many, one, rtol=1e-5, atol=1e-6, err_msg=f"bake {bake}")
+        base = dict(trajectory=str(static), adaptive=True, min_step_ns=1_000_000, max_step_ns=16_000_000,
+                    bake_resolution=bake)
+        (r0, e0), (r3, e3) = (_publish(run, **base, prefetch_levels=k) for k in (0, 3))
+        assert e0.size > 0
+        np.testing.assert_array_equal(e3, e0, err_msg=f"bake {bake}")
+        assert r3.renders > r0.renders          # frames rendered ahead that the refinement did not need
+
+
 def test_baked_playback_is_close_to_the_field(tiny_run):
     """Baking is an approximation: at 48 vertices per axis the baked images stay within a mean
     0.02 / max 0.25 of the field's linear intensity (measured ~0.005 / ~0.1 on this run), and it

@@ -156,6 +156,22 @@ class BakedField(DynamicField):
             out[sel] = v0 * (1.0 - fs) + v1 * fs
         return out[:, 0], out[:, 1]
 
+    def decode_times(self, features, times) -> tuple[torch.Tensor, torch.Tensor]:
+        """(K, N) density and grey of the same N points at K times (a static camera's batch):
+        every frame any of the times needs looked up in one pass, each time then the same blend
+        of its two frames as ``decode``."""
+        x = features
+        u = torch.as_tensor(np.asarray(times, np.float64), dtype=torch.float32, device=x.device)
+        u = u.clamp(0.0, 1.0) * (self.n_times - 1)
+        i0 = u.floor().clamp(max=self.n_times - 2).long()
+        f = (u - i0.float())[:, None]
+        needed = torch.unique(torch.cat([i0, i0 + 1]))
+        grid = self.frames[needed].reshape(-1, *self.frames.shape[2:])          # (F * 2, X, Y, Z)
+        v = _lookup(grid, x, self.frame_lo, self.frame_hi).t().reshape(len(needed), 2, -1)
+        slot = torch.searchsorted(needed, i0)                                  # i0's frame among them
+        out = v[slot] * (1.0 - f[:, :, None]) + v[slot + 1] * f[:, :, None]    # (K, 2, N)
+        return out[:, 0], out[:, 1]
+
     def forward(self, x: torch.Tensor, t: torch.Tensor):
         return self.decode(self.space_features(x), t)
 

@@ -94,6 +94,10 @@ PARAMETERS = [
       "(an approximation: faster, slightly different events; 0: the field itself)", min=0, max=512),
     Param("bake_times", 0, "trained field, baked: frames over the field's time 0..1 (0: 4 per time texel)", min=0,
       max=4096),
+    Param("prefetch_levels", 3, "trained field, static camera, adaptive whole images: render each top piece's first "
+      "N levels of midpoints ahead in one batch, needed or not (the same events; 0: one render at a time). A batch "
+      "costs about one render on a GPU; on the CPU a baked field's batch of 3 levels is 2.4x faster too",
+      min=0, max=8, read_only=True),
     Param("device", "auto", "where a trained field is evaluated: auto (cuda when available), cpu or cuda",
       choices=("auto", "cpu", "cuda"), read_only=True),
     Param("encoding", "evt3", "event message: evt3, evt2 or mono EventPacket, or array (dvs_msgs/EventArray)",
@@ -299,8 +303,20 @@ class EventPublisher(Node):
         return self.track(t_ns) @ self.T_robot_cam
 
     def render(self, t_ns: int) -> np.ndarray:
-        t_scene = int(t_ns) - self.t0 + int(round(self.params["scene_time_offset"] * NS))
-        return self.source(self.camera_pose(t_ns), t_scene)
+        return self.source(self.camera_pose(t_ns), int(self._scene_time(t_ns)))
+
+    def _scene_time(self, t_ns):
+        return np.asarray(t_ns, np.int64) - self.t0 + int(round(self.params["scene_time_offset"] * NS))
+
+    def _batched_renders(self, static_field: bool) -> dict:
+        """simulate_renderer's batch arguments: a trained field seen by a static camera renders
+        ``prefetch_levels`` of each top piece's midpoints at once."""
+        levels = int(self.params["prefetch_levels"])
+        if not static_field or levels == 0:
+            return {}
+        pose = self.camera_pose(self.t0)
+        return {"render_many": lambda times: self.source.render_times(pose, self._scene_time(times)),
+                "prefetch_levels": levels}
 
     def _field_travel(self, t0: int, t1: int):
         """The motion guard of a moving camera past a trained field over [t0, t1]
@@ -446,6 +462,7 @@ class EventPublisher(Node):
         moving = field and self._camera_moves()
         per_pixel = p["adaptive"] and field and (p["per_pixel"] == "true" or (p["per_pixel"] == "auto" and moving))
         guard = p["adaptive"] and moving and p["max_travel_px"] > 0
+        batched = self._batched_renders(field and not moving)
         if per_pixel:
             self.source.warm_up()      # the compiled single-pixel passes, loaded before the clock starts
         self.logger.info(f"publishing {(self.t1 - self.t0) / NS:.3f} s of events from the {self.source.kind} on "
@@ -482,7 +499,7 @@ class EventPublisher(Node):
                 events, st = simulate_pixels(self.render_pixels, t, tb, self.generator, **adaptive,
                                              reach_px=None if travel is None else travel.reach)
             elif p["adaptive"]:
-                events, st = simulate_renderer(self.render, t, tb, self.generator, **adaptive)
+                events, st = simulate_renderer(self.render, t, tb, self.generator, **adaptive, **batched)
             else:
                 events, st = simulate_renderer(self.render, t, tb, self.generator, mode="fixed",
                                                rate_hz=p["render_rate_hz"])

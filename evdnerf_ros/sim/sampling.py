@@ -127,7 +127,9 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
                       max_step_ns: int = DEFAULT_MAX_STEP_NS,
                       travel_px: Callable[[int, int], float] | None = None,
                       max_travel_px: float = DEFAULT_MAX_TRAVEL_PX,
-                      progress: Callable[[int], None] | None = None):
+                      progress: Callable[[int], None] | None = None,
+                      render_many: Callable[[np.ndarray], np.ndarray] | None = None,
+                      prefetch_levels: int = 0):
     """Render on (t_start, t_end] and return ``(events, SamplingStats)``.
 
     If `generator` has no frame yet, ``render(t_start)`` starts it; otherwise it must be
@@ -137,6 +139,10 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
     during [a, b]; adaptive pieces travelling further than `max_travel_px` are split without
     trusting the midpoint test (see the module notes). `progress`, if given, is called with
     the time (ns) of every frame fed to the generator.
+    ``render_many(times)`` -> (K, H, W) with ``prefetch_levels`` L > 0 (adaptive mode): each
+    top piece's first L levels of midpoints (up to 2^L - 1 frames, and its end) are rendered
+    ahead in one batch, whether the refinement then needs them all or not (on a GPU a batch
+    costs about one render); the same frames are fed, so the same events.
     """
     wall0 = time.perf_counter()
     t_start = _as_time(t_start, "t_start")
@@ -150,17 +156,26 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
     shape = (generator.height, generator.width)
     c_ref = min(generator.c_pos, generator.c_neg)
 
-    def render_log(t: int) -> np.ndarray:
-        where = f"render at t={t} ns"
-        r0 = time.perf_counter()
-        img = render(t)
-        stats.render_seconds += time.perf_counter() - r0
-        stats.renders += 1
+    def as_log(img, where: str) -> np.ndarray:
         img = np.asarray(img)
         if img.shape != shape:
             raise InputError(f"{where}: image shape {img.shape} does not match the generator's "
                              f"(height, width) = {shape}")
         return log_intensity(img, eps, where=where)
+
+    def render_log(t: int) -> np.ndarray:
+        r0 = time.perf_counter()
+        img = render(t)
+        stats.render_seconds += time.perf_counter() - r0
+        stats.renders += 1
+        return as_log(img, f"render at t={t} ns")
+
+    def render_logs(times: list[int]) -> list[np.ndarray]:
+        r0 = time.perf_counter()
+        imgs = render_many(np.asarray(times, np.int64))
+        stats.render_seconds += time.perf_counter() - r0
+        stats.renders += len(times)
+        return [as_log(img, f"render at t={t} ns") for t, img in zip(times, imgs)]
 
     if generator.initialized:
         if generator.t_ns != t_start:
@@ -221,8 +236,23 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
             return t_end if j >= n else t_start + j * min_step
 
         top = max_step // min_step                  # grid steps per top piece
+        levels = int(prefetch_levels) if render_many is not None else 0
+
+        def prefetch(lo, hi, depth):
+            """The grid points the refinement of [lo, hi] reaches within ``depth`` levels."""
+            if depth == 0 or hi - lo < 2:
+                return []
+            mid = (lo + hi) // 2
+            return prefetch(lo, mid, depth - 1) + [mid] + prefetch(mid, hi, depth - 1)
+
         for first in range(0, n, top):
-            stack = [(first, min(first + top, n))]
+            last = min(first + top, n)
+            if levels > 0:
+                want = [at(j) for j in [last, *prefetch(first, last, levels)]]
+                want = [t for t in want if t not in cache]
+                if want:
+                    cache.update(zip(want, render_logs(want)))
+            stack = [(first, last)]
             while stack:
                 lo, hi = stack.pop()
                 a, b = at(lo), at(hi)
@@ -255,6 +285,9 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
                 else:
                     stack.append((mid, hi))
                     stack.append((lo, mid))
+            if levels > 0:                          # prefetched frames the refinement did not need
+                for t in [t for t in cache if t != at(last)]:
+                    del cache[t]
     events = np.concatenate(chunks) if chunks else empty_events()
     stats.events = int(events.size)
     stats.wall_seconds = time.perf_counter() - wall0
