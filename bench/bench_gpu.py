@@ -193,51 +193,65 @@ def main(argv=None):
 
 
 def plot(result: dict, path: Path) -> None:
-    fig, ax = pyplot().subplots(1, 3, figsize=(16, 4.6))
+    training = bool(result["runs"] or result["steps"])      # else the publisher's parts alone: one panel
+    fig, ax = pyplot().subplots(1, 3 if training else 1, figsize=(17, 4.8) if training else (9, 5.2))
+    if training:
+        plot_training(ax[0], result)
+        plot_steps(ax[1], result)
+    plot_publisher(ax[-1] if training else ax, result)
+    save_figure(fig, path, dpi=110)
+
+
+def plot_training(ax, result: dict) -> None:
     for name, r in result["runs"].items():
         pts = [(m["wall_s"], 100 * m["val_margin_closed"]) for m in r["curve"] if m.get("val_margin_closed") is not None]
         if pts:
             x, y = zip(*pts)
-            ax[0].plot(x, y, marker=".", label=f"{name} ({r['ms_per_iter']:.1f} ms/it)")
-    ax[0].axhline(0, color="grey", ls="--", lw=1)
-    ax[0].set_xlabel(f"training wall time on {result['device']} (s)")
-    ax[0].set_ylabel("floor-to-truth margin closed (%, 32 windows)")
-    ax[0].set_title(f"{result['set']} on {result.get('gpu') or result['device']}", fontsize=9)
-    if ax[0].get_legend_handles_labels()[0]:
-        ax[0].legend(fontsize=8)
+            ax.plot(x, y, marker=".", label=f"{name} ({r['ms_per_iter']:.1f} ms/it)")
+    ax.axhline(0, color="grey", ls="--", lw=1)
+    ax.set_xlabel(f"training wall time on {result['device']} (s)")
+    ax.set_ylabel("floor-to-truth margin closed (%, 32 windows)")
+    ax.set_title(f"{result['set']} on {result.get('gpu') or result['device']}", fontsize=9)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+
+
+def plot_steps(ax, result: dict) -> None:
     names = list(result["steps"])
     devs = sorted({d for v in result["steps"].values() for d in v})
     for j, d in enumerate(devs):
-        ax[1].bar([i + 0.4 * (j - (len(devs) - 1) / 2) for i in range(len(names))],
-                  [result["steps"][n].get(d, {}).get("median_ms", 0) for n in names], width=0.4, label=d)
-    ax[1].set_xticks(range(len(names)), names)
-    ax[1].set_yscale("log")
-    ax[1].set_ylabel("ms per training iteration (median)")
-    ax[1].set_title(f"step time, CPU = {result['machine']['cpus']} cores", fontsize=9)
-    if ax[1].get_legend_handles_labels()[0]:
-        ax[1].legend(fontsize=8)
+        ax.bar([i + 0.4 * (j - (len(devs) - 1) / 2) for i in range(len(names))],
+               [result["steps"][n].get(d, {}).get("median_ms", 0) for n in names], width=0.4, label=d)
+    ax.set_xticks(range(len(names)), names)
+    ax.set_yscale("log")
+    ax.set_ylabel("ms per training iteration (median)")
+    ax.set_title(f"step time, CPU = {result['machine']['cpus']} cores", fontsize=9)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+
+
+def plot_publisher(ax, result: dict) -> None:
     for bake in sorted({r.get("bake", 0) for r in result["publisher"]}):
         for camera, marker in (("static", "o"), ("orbit", "s")):
             rows = [r for r in result["publisher"] if r["path"] == camera and r.get("bake", 0) == bake]
             if rows:
-                ax[2].plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker=marker,
-                           ls="--" if bake else "-",
-                           label=f"{camera} camera, " + (f"baked {bake}" if bake else "the field itself"))
+                ax.plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker=marker,
+                        ls="--" if bake else "-",
+                        label=f"{camera} camera, " + (f"baked {bake}" if bake else "the field itself"))
     steady = result.get("steady", [])
     for bake, camera, levels in sorted({(r["bake"], r["path"], r.get("prefetch_levels", 0)) for r in steady}):
         rows = [r for r in steady if (r["bake"], r["path"], r.get("prefetch_levels", 0)) == (bake, camera, levels)]
-        ax[2].plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker="o" if camera == "static" else "s",
-                   lw=2.5, alpha=0.6, ls="--" if bake else "-",
-                   label=f"{camera}, " + (f"baked {bake}" if bake else "field")
-                   + (f", prefetch {levels}" if camera == "static" else "") + f", {rows[0]['span_s']:g} s steady")
-    ax[2].axhline(1, color="k", ls="--", lw=1, label="real time")
-    ax[2].set_xscale("log", base=2)
-    ax[2].set_yscale("log")
-    ax[2].set_xlabel("resolution (square, px)")
-    ax[2].set_ylabel("publisher real-time factor")
-    ax[2].set_title("publishing from the trained run", fontsize=9)
-    ax[2].legend(fontsize=8)
-    save_figure(fig, path, dpi=110)
+        ax.plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker="o" if camera == "static" else "s",
+                lw=2.5, alpha=0.6, ls="--" if bake else "-",
+                label=f"{camera}, " + (f"baked {bake}" if bake else "field")
+                + (f", prefetch {levels}" if camera == "static" else "") + f", {rows[0]['span_s']:g} s steady")
+    ax.axhline(1, color="k", ls="--", lw=1, label="real time")
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ax.set_xlabel("resolution (square, px)")
+    ax.set_ylabel("publisher real-time factor")
+    ax.set_title(f"publishing from the trained run ({result.get('gpu') or result['device']})", fontsize=9)
+    ax.legend(fontsize=7, loc="lower left")
 
 
 if __name__ == "__main__":
