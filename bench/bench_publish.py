@@ -180,6 +180,8 @@ LEVERS = {"plain (every ray, every sample)": {"leave_out": False, "reuse_static"
           "min step 5 ms": {"min_step_ns": 5_000_000},
           "baked 32": {"bake_resolution": 32}, "baked 64": {"bake_resolution": 64},
           "baked 96": {"bake_resolution": 96},
+          "prefetch 3 (batched renders)": {"prefetch_levels": 3},
+          "baked 64 prefetch 0": {"bake_resolution": 64, "prefetch_levels": 0},
           "static reuse, tolerance 0.5 C": {"tolerance_c": 0.5},
           "static reuse, tolerance 0.02 C": {"tolerance_c": 0.02},
           "whole images": {"per_pixel": "false"},
@@ -193,9 +195,10 @@ LEVERS = {"plain (every ray, every sample)": {"leave_out": False, "reuse_static"
                                                           "max_travel_px": 0.0}}
 #: levers that are the default on one path (static_world auto: field for a static camera, flat
 #: for a moving one; per_pixel auto: whole images for a static camera, per pixel for a moving
-#: one) or meaningless there (the static part's tolerance levers with a moving camera, the
-#: motion guard with a static one)
-SKIP = {"static": ("static world field", "whole images", "motion guard"), "orbit": ("static world flat", "tolerance")}
+#: one) or meaningless there (the static part's tolerance levers and batched whole images with a
+#: moving camera, the motion guard with a static one)
+SKIP = {"static": ("static world field", "whole images", "motion guard"),
+        "orbit": ("static world flat", "tolerance", "prefetch")}
 #: levers of the RTF-against-resolution sweep, per path (for the orbit, "static reuse (default)"
 #: is the default: a moving camera has nothing to reuse)
 RESOLUTION_LEVERS = {"static": ("static reuse (default)", "baked 64"), "orbit": ("static reuse (default)", "baked 64")}

@@ -94,10 +94,10 @@ PARAMETERS = [
       "(an approximation: faster, slightly different events; 0: the field itself)", min=0, max=512),
     Param("bake_times", 0, "trained field, baked: frames over the field's time 0..1 (0: 4 per time texel)", min=0,
       max=4096),
-    Param("prefetch_levels", 3, "trained field, static camera, adaptive whole images: render each top piece's first "
-      "N levels of midpoints ahead in one batch, needed or not (the same events; 0: one render at a time). A batch "
-      "costs about one render on a GPU; on the CPU a baked field's batch of 3 levels is 2.4x faster too",
-      min=0, max=8, read_only=True),
+    Param("prefetch_levels", -1, "trained field, static camera, adaptive whole images: render each top piece's first "
+      "N levels of midpoints ahead in one batch, needed or not (the same events; 0: one render at a time); -1: auto, "
+      "3 where a batch costs about one render (a baked field, whose lookups take every time at once, or a GPU), "
+      "else 0 (the field itself on the CPU pays for every render of a batch)", min=-1, max=8, read_only=True),
     Param("device", "auto", "where a trained field is evaluated: auto (cuda when available), cpu or cuda",
       choices=("auto", "cpu", "cuda"), read_only=True),
     Param("encoding", "evt3", "event message: evt3, evt2 or mono EventPacket, or array (dvs_msgs/EventArray)",
@@ -312,6 +312,9 @@ class EventPublisher(Node):
         """simulate_renderer's batch arguments: a trained field seen by a static camera renders
         ``prefetch_levels`` of each top piece's midpoints at once."""
         levels = int(self.params["prefetch_levels"])
+        if levels < 0 and static_field:
+            batches = hasattr(self.source.field, "decode_times") or self.source.device.type == "cuda"
+            levels = 3 if batches else 0
         if not static_field or levels == 0:
             return {}
         pose = self.camera_pose(self.t0)
