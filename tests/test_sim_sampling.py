@@ -485,3 +485,32 @@ def test_box_reach_holds_every_point_of_the_box_while_the_camera_moves():
     [(x0, _, x1, _)] = box_travel(box, cam, times[:3], inside, infinity=False).reach(np.array([0]), np.array([1]))
     assert x0 == -np.inf and x1 == np.inf
     assert box_travel(box, cam, times, poses, infinity=True).reach(np.array([0]), np.array([1])) is None
+
+
+@pytest.mark.parametrize("levels", [1, 3, 6])
+def test_batched_prefetch_feeds_the_same_frames_and_events(levels):
+    """``render_many`` with ``prefetch_levels``: the same frames fed at the same times, so the
+    same events; more renders (some ahead of need), in fewer calls; the batch's times are grid
+    points of the piece and none is rendered twice."""
+    span, min_step = 50_000_000, 100_000
+    scene = SigmoidEdge(n=12, tau_ns=1_000_000, span=span)
+    runs = {}
+    for k in (0, levels):
+        fed, batches = [], []
+
+        def many(times):
+            batches.append(np.asarray(times).copy())
+            return np.stack([scene(t) for t in times])
+
+        ev, st = simulate_renderer(scene, 0, span, EventGenerator(12, 1), min_step_ns=min_step,
+                                   max_step_ns=6_400_000, progress=fed.append, render_many=many,
+                                   prefetch_levels=k)
+        runs[k] = (ev, st, fed, batches)
+    (ev0, st0, fed0, b0), (evk, stk, fedk, bk) = runs[0], runs[levels]
+    assert ev0.size > 0 and not b0                              # 0 levels: no batch at all
+    np.testing.assert_array_equal(evk, ev0)
+    assert fedk == fed0
+    assert stk.renders >= st0.renders and len(bk) > 0
+    times = np.concatenate(bk)
+    assert np.all(times % min_step == 0) and np.unique(times).size == times.size
+    assert all(b.size <= 2 ** levels for b in bk)               # 2^L - 1 midpoints and the end
