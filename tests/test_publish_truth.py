@@ -156,8 +156,9 @@ def test_batched_renders_change_cost_not_events(tmp_path):
         assert e0.size > 0
         np.testing.assert_array_equal(e3, e0, err_msg=f"bake {bake}")
         assert r3.renders > r0.renders          # frames rendered ahead that the refinement did not need
-        # auto (-1, the default) on the CPU: batches for a baked field only
+        # auto (-1, the default) on the CPU: batches for a baked field only; none without static reuse
         assert _publish(run, **base)[0].renders == (r3.renders if bake else r0.renders)
+        assert _publish(run, **base, prefetch_levels=3, reuse_static=False)[0].renders == r0.renders
 
 
 def test_baked_playback_is_close_to_the_field(tiny_run):

@@ -97,7 +97,8 @@ PARAMETERS = [
     Param("prefetch_levels", -1, "trained field, static camera, adaptive whole images: render each top piece's first "
       "N levels of midpoints ahead in one batch, needed or not (the same events; 0: one render at a time); -1: auto, "
       "3 where a batch costs about one render (a baked field, whose lookups take every time at once, or a GPU), "
-      "else 0 (the field itself on the CPU pays for every render of a batch)", min=-1, max=8, read_only=True),
+      "else 0 (the field itself on the CPU pays for every render of a batch); off with reuse_static false", min=-1, max=8,
+      read_only=True),
     Param("device", "auto", "where a trained field is evaluated: auto (cuda when available), cpu or cuda",
       choices=("auto", "cpu", "cuda"), read_only=True),
     Param("encoding", "evt3", "event message: evt3, evt2 or mono EventPacket, or array (dvs_msgs/EventArray)",
@@ -310,8 +311,9 @@ class EventPublisher(Node):
 
     def _batched_renders(self, static_field: bool) -> dict:
         """simulate_renderer's batch arguments: a trained field seen by a static camera renders
-        ``prefetch_levels`` of each top piece's midpoints at once."""
-        levels = int(self.params["prefetch_levels"])
+        ``prefetch_levels`` of each top piece's midpoints at once (not with reuse_static false,
+        which promises every sample at every render: a batch shares its static part)."""
+        levels = int(self.params["prefetch_levels"]) if self.params["reuse_static"] else 0
         if levels < 0 and static_field:
             batches = hasattr(self.source.field, "decode_times") or self.source.device.type == "cuda"
             levels = 3 if batches else 0
