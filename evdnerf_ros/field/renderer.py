@@ -351,34 +351,18 @@ class FieldRenderer(CameraRenderer):
     # ------------------------------------------------------------------ playback
     def render(self, T_world_cam, t_ns) -> np.ndarray:
         """(H, W) float32 linear intensity (>= 0) at scene time ``t_ns`` (the Renderer interface)."""
-        from ..geometry.poses import check_rigid
-
-        tn = self.normalized_time(t_ns)
-        T = check_rigid(T_world_cam, "T_world_cam")
-        cam, s = self.camera, self.pixel_samples
-        n = cam.width * cam.height * s * s
-        with torch.no_grad():
-            plans, backdrop = self._plan(T)
-            out = backdrop.clone()
-
-            def decode(p):
-                if hasattr(self.field, "decode_at"):
-                    return self.field.decode_at(p.feats, tn)
-                return self.field.decode(p.feats, as_time_column(tn, p.dyn_idx.numel(), self.device))
-
-            for p in plans:
-                self._play(p, out, decode)
-        self.rays_total += n
-        img = pixel_means(out, s).reshape(cam.height, cam.width).cpu().numpy().astype(np.float32)
-        return np.maximum(img, 0.0)
+        return self._render_at(T_world_cam, [self.normalized_time(t_ns)])[0]
 
     def render_times(self, T_world_cam, t_ns) -> np.ndarray:
         """(K, H, W) float32: ``render`` at each of the K scene times ``t_ns`` from one pose, in one
         batch (each dynamic sample looked up at every time at once; on a GPU far fewer launches
         and one copy back instead of K).  The same images as K calls of ``render``."""
+        return self._render_at(T_world_cam, [self.normalized_time(t) for t in np.asarray(t_ns).reshape(-1)])
+
+    def _render_at(self, T_world_cam, tns) -> np.ndarray:
+        """(K, H, W) images from one pose at the field's times ``tns``."""
         from ..geometry.poses import check_rigid
 
-        tns = [self.normalized_time(t) for t in np.asarray(t_ns, np.int64).reshape(-1)]
         T = check_rigid(T_world_cam, "T_world_cam")
         cam, s, k_times = self.camera, self.pixel_samples, len(tns)
         n = cam.width * cam.height * s * s
