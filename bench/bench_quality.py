@@ -37,6 +37,7 @@ Usage: python bench/bench_quality.py [--full | --demo [--sweeps N] | --rig TRAIN
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import pickle
 import resource
@@ -222,19 +223,19 @@ def merged(*cfgs: dict) -> dict:
 
 def final_scores(field, ts, cfg, box, dynamic, final_views: dict, work: Path, set_stem: str,
                  moving: bool = False) -> dict:
-    """{"x<factor>": events-PSNR, floor, true scene, margin closed} of a trained field on the first
-    validation views at 32 x factor windows ({factor: views}); the true scene's scores are cached
-    in WORK (they never change for a set)."""
+    """{"x<factor>": events-PSNR, floor, true scene, margin closed} of a trained field on validation
+    views spread over the set (``spread_views``) at 32 x factor windows ({factor: views}); the true
+    scene's scores are cached in WORK (they never change for a set and its views)."""
     import torch
 
-    from evdnerf_ros.eval.evaluate import evaluate_views, moving_views, static_views
+    from evdnerf_ros.eval.evaluate import evaluate_views, moving_views, spread_views, static_views
     from evdnerf_ros.eval.truth import TrueScene
     from evdnerf_ros.field.renderer import resolve_static_world
 
     truth = TrueScene.of(ts)[0]
     final = {}
     field = field.eval()
-    splits = [(f"x{factor}", static_views(ts, ts.val_views)[:int(nviews)], int(factor), "field")
+    splits = [(f"x{factor}", spread_views(static_views(ts, ts.val_views), int(nviews)), int(factor), "field")
               for factor, nviews in final_views.items()]
     if moving and moving_views(ts, ts.val_views):
         world = resolve_static_world("auto", moving=True, has_region=dynamic is not None)
@@ -244,7 +245,8 @@ def final_scores(field, ts, cfg, box, dynamic, final_views: dict, work: Path, se
             splits.append(("moving_x1_field", moving_views(ts, ts.val_views), 1, "field"))
     with torch.no_grad():
         for key, views, factor, static_world in splits:
-            cache = work / f"truth-{set_stem}-{key}-{len(views)}.pkl"
+            which = hashlib.sha1(" ".join(views).encode()).hexdigest()[:8]     # the views themselves
+            cache = work / f"truth-{set_stem}-{key}-{len(views)}-{which}.pkl"
             tm = pickle.loads(cache.read_bytes()) if cache.exists() else None
             _, _, m = evaluate_views(field, ts, views, 32 * factor, box=box,
                                      n_samples=cfg.n_samples, log_eps=cfg.log_eps, near=cfg.near,

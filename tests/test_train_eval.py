@@ -213,3 +213,28 @@ def test_eval_scores_training_views_spread_over_the_ring():
     assert spread_views(ring, 4) == ["v00", "v06", "v11", "v17"]
     assert spread_views(ring, 0) == spread_views(ring, None) == spread_views(ring, 18) == ring
     assert spread_views(ring[:3], 4) == ring[:3] and spread_views(ring, 1) == ["v00"]
+
+
+def test_validation_and_eval_score_views_spread_over_the_ring(monkeypatch, tmp_path):
+    """``max_views`` takes views spread over the ring, not its first (neighbouring) ones: the
+    trainer's periodic validation and ``evdnerf eval`` alike."""
+    from types import SimpleNamespace
+
+    from evdnerf_ros.eval import evaluate as E
+
+    ring = [f"val_{i:02d}" for i in range(18)]
+    seen = []
+
+    def fake_evaluate_views(field, ts, views, windows, **kw):
+        seen.append(list(views))
+        zero = {"psnr": 30.0, "ssim": 0.9, "mae": 0.1}
+        return None, None, {"continuous": zero, "quantized": zero, "zero_floor": zero}
+
+    monkeypatch.setattr(E, "evaluate_views", fake_evaluate_views)
+    monkeypatch.setattr(E, "static_views", lambda ts, views: list(views))
+    monkeypatch.setattr(E.TrueScene, "of", classmethod(lambda cls, ts: (None, "no truth")))
+    ts = SimpleNamespace(val_views=ring, train_views=[])
+    ctx = {"train_set": ts, "windows": 8, "box": None, "n_samples": 8, "log_eps": 1e-3, "near": 0.0, "far": 1.0,
+           "background": 0.0, "occupancy": None}
+    E.validation_eval(max_views=4)(None, ctx)
+    assert seen[-1] == ["val_00", "val_06", "val_11", "val_17"]

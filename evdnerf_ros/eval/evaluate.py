@@ -152,13 +152,14 @@ def per_view_scores(views, preds, gts, trues, data_range: float) -> dict:
 def validation_eval(*, n_windows: int | None = None, max_views: int | None = None):
     """An `eval_fn(field, ctx)` for the trainer: val_psnr, its zero floor, SSIM, MAE, quantised PSNR.
 
-    `n_windows` defaults to the trainer's current window count; `max_views` bounds the cost.
+    `n_windows` defaults to the trainer's current window count; `max_views` bounds the cost
+    (that many validation views, spread evenly over the set: ``spread_views``).
     """
     truths: dict = {}       # the true scene's score per (views, windows): it never changes
 
     def eval_fn(field, ctx) -> dict:
         ts = ctx["train_set"]
-        views = (static_views(ts, ts.val_views) or ts.train_views)[:max_views]
+        views = spread_views(static_views(ts, ts.val_views) or ts.train_views, max_views)
         windows = n_windows or ctx["windows"]
         if "scene" not in truths:
             truths["scene"] = TrueScene.of(ts)[0]
@@ -230,8 +231,9 @@ def moving_views(train_set, views) -> list[str]:
 
 
 def spread_views(views, k: int | None) -> list[str]:
-    """At most ``k`` of ``views`` (None or 0: all), evenly spread over the list (a ring's
-    views are in order: the first k would be neighbours)."""
+    """At most ``k`` of ``views`` (None or 0: all), evenly spread over the list, first and last
+    included (a ring's views are in order: the first k would be neighbours, one arc of the ring;
+    Jet-Down's first 4 of 18 validation views scored 72 % of the margin where all 18 score 68 %)."""
     views = list(views)
     if not k or k >= len(views):
         return views
@@ -243,9 +245,9 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
              static_world: str = "auto") -> dict:
     """`evdnerf eval RUN TRAIN.h5`: events metrics on validation and training views at the
     trained window count and 4x / 8x finer windows; GT vs prediction event images.
-    ``max_views`` bounds every split (its first views); ``train_views`` (None or 0: all) the
-    training views, spread evenly over the set: they check the fit, the protocol's metric is the
-    validation views'.
+    ``max_views`` bounds every split (that many of its views, spread evenly over it:
+    ``spread_views``); ``train_views`` (None or 0: all) the training views scored, spread evenly
+    too: they check the fit, the protocol's metric is the validation views'.
     ``device``: auto, cpu or cuda (``evdnerf_ros.device``): where the field is evaluated;
     ``static_world``: auto, field or flat (module docstring)."""
     import torch
@@ -268,9 +270,10 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
         result["true_scene"] = truth.record["scene"] if truth is not None else None
         if truth is None:
             result["true_scene_note"] = why
-        splits = {"val": static_views(ts, ts.val_views)[:max_views],
-                  "train": spread_views(ts.train_views[:max_views], train_views),
-                  "moving": moving_views(ts, ts.val_views)[:max_views]}
+        train_k = min(k for k in (max_views, train_views) if k) if (max_views or train_views) else None
+        splits = {"val": spread_views(static_views(ts, ts.val_views), max_views),
+                  "train": spread_views(ts.train_views, train_k),
+                  "moving": spread_views(moving_views(ts, ts.val_views), max_views)}
         for split, views in splits.items():
             if not views:
                 continue
