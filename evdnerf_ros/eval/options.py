@@ -12,7 +12,8 @@ from ..options import option
 class EvalOptions:
     windows: int | None = option(None, "window count", kind=int, low=1, high=100_000,
                                  none_help="the trained one")
-    max_views: int | None = option(None, "evaluate at most this many views per split", kind=int, low=1,
+    max_views: int | None = option(None, "evaluate at most this many views per split, spread evenly over it "
+                                   "(a ring's first views would be neighbours)", kind=int, low=1,
                                    high=100_000, none_help="every view")
     train_views: int = option(4, "training views scored, spread evenly over the set (a check of the fit; the "
                               "protocol's metric is on the validation views); 0: every one", low=0, high=100_000)
