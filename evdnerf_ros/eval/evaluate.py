@@ -270,7 +270,7 @@ def run_eval(run_dir, train_h5, *, n_windows: int | None = None, max_views: int 
         result["true_scene"] = truth.record["scene"] if truth is not None else None
         if truth is None:
             result["true_scene_note"] = why
-        train_k = min(k for k in (max_views, train_views) if k) if (max_views or train_views) else None
+        train_k = min(filter(None, (max_views, train_views)), default=None)     # None: every view
         splits = {"val": spread_views(static_views(ts, ts.val_views), max_views),
                   "train": spread_views(ts.train_views, train_k),
                   "moving": spread_views(moving_views(ts, ts.val_views), max_views)}
