@@ -1,3 +1,4 @@
+import itertools
 import os
 import time
 from pathlib import Path
@@ -151,12 +152,18 @@ def virtual_rig(built, rig_lock):
         yield vr
 
 
+# a random start for this process, then one domain after the other
+_domains_drawn = itertools.count((os.getpid() + time.time_ns() // 1000) % 1000)
+
+
 def ros_domain() -> int:
-    """A DDS domain (1..200) for one test: random, from a range of its own for each xdist worker,
-    so tests running at the same time in two workers never share a domain (a foreign node's
-    /tf_static or discovery sample in a test's domain fails it)."""
+    """A DDS domain (1..200) for one test, from a range of its own for each xdist worker, so
+    tests running at the same time in two workers never share a domain; within a worker the
+    domains follow each other from a random start, so no two tests of one run share one either
+    (a node or peer process of an earlier test that is still shutting down would otherwise serve
+    its /tf_static or discovery sample to a later test that drew the same domain)."""
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
     count = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
     index = int(worker[2:]) if worker[2:].isdigit() else 0
     size = max(1, 200 // count)
-    return 1 + (index % count) * size + (os.getpid() + time.time_ns() // 1000) % size
+    return 1 + (index % count) * size + next(_domains_drawn) % size
