@@ -30,6 +30,10 @@ Writes ``publish.json`` and ``publish.png`` into ``--out``.
   median of up to 5 runs within 3 s of publishing); RTF against
   resolution for the static view and the orbit. ``--backbone hinge``: the same with a ``hinge`` run (stored as
   ``published_vs_true_hinge``, drawn beside the planes run's).
+* **Sampled ahead** (``--only render_ahead``): the same run's orbit (a moving camera, per-pixel
+  sampling), 0.3 s, 64x64 and 128x128, the field itself and baked 64, with ``render_ahead`` 0 (one
+  10 ms chunk at a time) / 50 / 100 / 200 ms: RTF (median of 3 interleaved runs), render calls,
+  and whether the events equal one chunk at a time's.
 * **DDS throughput**: a writer process and a reader process on loopback (Cyclone DDS,
   localhost only), EventPacket messages of 64 KiB and 1 MiB, reliable keep-last 64; the
   reader deserialises every message (rosbags on the fast path, IdlStruct on the slow
@@ -269,6 +273,43 @@ def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: 
     return out
 
 
+#: ``render_ahead`` values of the render-ahead part (s; 0: one chunk at a time, as before session 26)
+AHEAD_S = (0.0, 0.05, 0.1, 0.2)
+
+
+def bench_render_ahead(work: Path, quick: bool, threads: int) -> dict:
+    """A moving camera (the orbit) sampled per pixel one chunk (10 ms) at a time against
+    ``render_ahead`` spans of several chunks: the same events (checked), fewer and larger render
+    calls; the publisher alone (``publisher_cost``), the field itself and baked 64, 64x64 and
+    128x128, the median RTF of interleaved repeats."""
+    import torch
+
+    from evdnerf_ros.eval.published import publisher_cost
+
+    torch.set_num_threads(threads)
+    _, run = trained_fork_run(work, minutes=1.0 if quick else 2.0)
+    span = 100_000_000 if quick else 300_000_000
+    repeats = 1 if quick else 3
+    rows = []
+    for size in ((64, 64),) if quick else ((64, 64), (128, 128)):
+        for source, extra in (("field", {}), ("baked 64", {"bake_resolution": 64})):
+            runs = {a: [] for a in AHEAD_S}
+            for _ in range(repeats):                     # interleaved: the machine's drift hits every value alike
+                for a in AHEAD_S:
+                    runs[a].append(publisher_cost(run, static=False, duration_ns=span, resolution=size,
+                                                  publisher={**extra, "render_ahead": a}))
+            for a, costs in runs.items():
+                rtfs = [c["rtf"] for c in costs]
+                row = {"width": size[0], "height": size[1], "source": source, "render_ahead_s": a,
+                       "rtf": float(np.median(rtfs)), "rtf_runs": rtfs, "render_calls": costs[0]["render_calls"],
+                       "renders": costs[0]["renders"], "pixels_rendered": costs[0]["pixels_rendered"],
+                       "events": costs[0]["events"], "same_events_as_one_chunk": costs[0]["events"] == runs[0.0][0]["events"]}
+                rows.append(row)
+                print(f"render ahead {a:g} s, {source}, {size[0]}x{size[1]}: RTF {row['rtf']:.3f} "
+                      f"({row['render_calls']} render calls, {row['events']} events)", flush=True)
+    return {"threads": threads, "span_s": span / 1e9, "chunk_s": 0.01, "rows": rows}
+
+
 def make_field_run(run_dir, *, half_empty=True):
     """A randomly initialised planes field saved as a run (checkpoint with box and occupancy)."""
     import torch
@@ -406,7 +447,8 @@ def main(argv=None):
     ap = arg_parser(__doc__, quick="smaller sweep (smoke test)")
     ap.add_argument("--dds-cpus", default="0,1", help="cores of the DDS writer,reader ('' = no pinning)")
     ap.add_argument("--note", default="", help="free text stored in the JSON (e.g. machine load)")
-    ap.add_argument("--only", choices=["resolution", "tolerance", "leave_out", "dds", "published"], action="append")
+    ap.add_argument("--only", choices=["resolution", "tolerance", "leave_out", "dds", "published", "render_ahead"],
+                    action="append")
     ap.add_argument("--work", default="", help="folder for the published-vs-true run (kept; default: a temp folder)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the published-vs-true part (1: shared "
                     "machine)")
@@ -417,7 +459,7 @@ def main(argv=None):
                     "(0: 0.1 with --quick, else 0.3)")
     args = ap.parse_args(argv)
     cpus = args.dds_cpus.split(",") if args.dds_cpus else None
-    parts = args.only or ["resolution", "tolerance", "leave_out", "dds", "published"]
+    parts = args.only or ["resolution", "tolerance", "leave_out", "dds", "published", "render_ahead"]
     name = "publish_quick" if args.quick else "publish"
     result = read_results(args.out, name, missing_ok=True) if args.only else {}   # update only the parts run now
     result.update({"benchmark": "publish", "quick": args.quick, "note": args.note,
@@ -437,12 +479,16 @@ def main(argv=None):
             result[key] = bench_published(Path(args.work or tmp), args.quick, args.threads,
                                           [n for n in args.levers.split(",") if n] or None, args.span,
                                           args.backbone)
+    if "render_ahead" in parts:
+        with tempfile.TemporaryDirectory() as tmp:
+            result["render_ahead"] = bench_render_ahead(Path(args.work or tmp), args.quick, args.threads)
     write_results(args.out, name, result, plot)
 
 
 def plot(result, path):
     pv = result.get("published_vs_true")
-    fig, ax = pyplot().subplots(1, 6 if pv else 4, figsize=(31 if pv else 21, 4.6))
+    ahead = result.get("render_ahead")
+    fig, ax = pyplot().subplots(1, 7, figsize=(36, 4.6))
     if pv:
         hinge = result.get("published_vs_true_hinge", {"levers": {}})
         for path_name, mk, field_name, levers in (("static", "o", "planes", pv), ("orbit", "s", "planes", pv),
@@ -520,6 +566,23 @@ def plot(result, path):
         ax[3].set_yscale("log")
         ax[3].set_ylabel("speed-up (wall time off / on)")
         ax[3].set_title("leave-out switches (adaptive vs fixed at its finest step)")
+    if ahead:
+        for (size, source), mk in zip(dict.fromkeys((r["width"], r["source"]) for r in ahead["rows"]),
+                                      ("o-", "s--", "^-", "d--")):
+            rows = [r for r in ahead["rows"] if (r["width"], r["source"]) == (size, source)]
+            ax[6].plot([r["render_ahead_s"] * 1e3 for r in rows], [r["rtf"] for r in rows], mk,
+                       label=f"{size}x{rows[0]['height']}, {source}")
+            for r in rows:
+                ax[6].annotate(f"{r['render_calls']}", (r["render_ahead_s"] * 1e3, r["rtf"]), fontsize=7)
+        ax[6].set_yscale("log")
+        ax[6].set_xlabel(f"render_ahead (ms; 0: one {ahead['chunk_s'] * 1e3:g} ms chunk at a time)")
+        ax[6].set_ylabel("real-time factor")
+        ax[6].set_title(f"moving camera per pixel: sampled ahead (labels: render calls per {ahead['span_s']:g} s; "
+                        "same events)", fontsize=9)
+        ax[6].legend(fontsize=7)
+    for a in ax:
+        if not a.has_data():
+            a.set_visible(False)
     save_figure(fig, path, dpi=110)
 
 

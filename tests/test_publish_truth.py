@@ -258,11 +258,12 @@ def test_motion_guard_keeps_a_fast_camera_s_events(tmp_path):
         (guarded_ev.size, blind_ev.size, dense_ev.size)
 
 
-def test_the_chunks_pose_grid_and_the_chunk_length_change_cost_not_events(tmp_path, monkeypatch):
+def test_the_chunks_pose_grid_and_rendering_ahead_change_cost_not_events(tmp_path, monkeypatch):
     """Per-pixel sampling of a moving camera looks its poses up on the chunk's sampling grid (made at
     once, ``_plan_poses``) instead of interpolating the trajectory at every render: the same events as
     without the grid; and chunks that are whole multiples of ``max_step_ns`` give the same events
-    whatever their length (fewer, larger renders: the offline lever)."""
+    whatever their length and however many of them are sampled in one go (``render_ahead``: fewer,
+    larger renders), published chunk by chunk as before."""
     from evdnerf_ros.eval.published import _write_trajectory
     from evdnerf_ros.geometry.pose_track import PoseTrack
     from evdnerf_ros.nodes import event_publisher
@@ -271,7 +272,8 @@ def test_the_chunks_pose_grid_and_the_chunk_length_change_cost_not_events(tmp_pa
     run = _changing_run(tmp_path)
     t, T = TrainedRun.load(run).orbit(10**9)
     moving = _write_trajectory(tmp_path / "moving.yaml", t[:2], T[:2])
-    kw = dict(trajectory=str(moving), duration=0.04, trajectory_max_gap=2.0, adaptive=True, max_step_ns=5_000_000)
+    kw = dict(trajectory=str(moving), duration=0.04, trajectory_max_gap=2.0, adaptive=True, max_step_ns=5_000_000,
+              render_ahead=0.0)
     calls = []
     real = PoseTrack.poses
     monkeypatch.setattr(PoseTrack, "poses", lambda self, times: calls.append(len(times)) or real(self, times))
@@ -289,9 +291,15 @@ def test_the_chunks_pose_grid_and_the_chunk_length_change_cost_not_events(tmp_pa
     real_render = event_publisher.EventPublisher.render_pixels
     monkeypatch.setattr(event_publisher.EventPublisher, "render_pixels",
                         lambda self, t_ns, pixels: batches.append(pixels.size) or real_render(self, t_ns, pixels))
-    for chunk in (0.01, 0.02):
-        long, long_ev = _publish(run, chunk=chunk, **kw)
-        np.testing.assert_array_equal(long_ev, grid_ev)
-        batches.append(None)
-    split = batches.index(None)
-    assert len(batches) - split - 1 < split         # the longer chunks: fewer, larger render calls
+    render_calls, messages = {}, {}
+    for chunk, ahead in ((0.01, 0.0), (0.02, 0.0), (0.01, 0.02), (0.01, 0.04), (0.01, -1.0)):
+        batches.clear()
+        rep, ev = _publish(run, chunk=chunk, **{**kw, "render_ahead": ahead})
+        np.testing.assert_array_equal(ev, grid_ev)
+        assert rep.render_calls == len(batches)        # the report counts the calls (a batch is one)
+        render_calls[chunk, ahead], messages[chunk, ahead] = len(batches), rep.messages
+    # sampled ahead, still published chunk by chunk: the same messages as one chunk at a time
+    assert messages[0.01, 0.0] == messages[0.01, 0.02] == messages[0.01, 0.04] == messages[0.01, -1.0] > 4
+    # longer chunks, or chunks sampled ahead: fewer, larger render calls (auto: the whole 40 ms at once)
+    c = render_calls
+    assert c[0.01, 0.0] > c[0.02, 0.0] == c[0.01, 0.02] > c[0.01, 0.04] == c[0.01, -1.0], c

@@ -170,7 +170,7 @@ def _publish_run(run_dir, path: dict, traj: Path, publisher: dict | None):
 def _cost(rep, publisher: dict | None) -> dict:
     """The publisher's own cost from its report."""
     return {"wall_s": rep.wall_seconds, "rtf": rep.rtf, "source_s": rep.source_seconds,
-            "renders": rep.renders, "pixels_rendered": rep.pixels_rendered,
+            "renders": rep.renders, "render_calls": rep.render_calls, "pixels_rendered": rep.pixels_rendered,
             "render_s": rep.render_seconds, "rays_rendered": rep.rays_rendered,
             "rays_total": rep.rays_total, "samples_evaluated": rep.samples_evaluated,
             "samples_total": rep.samples_total, "events": rep.events,

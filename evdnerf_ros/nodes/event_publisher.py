@@ -105,6 +105,12 @@ PARAMETERS = [
       choices=("evt3", "evt2", "mono", "array")),
     Param("packet_ns", 1_000_000, "longest time span of one event message (ns)", min=1),
     Param("chunk", 0.01, "seconds of trajectory rendered and published per step", min=1e-6, max=MAX_SECONDS),
+    Param("render_ahead", -1.0, "seconds of trajectory sampled in one go, then published chunk by chunk (a whole "
+      "number of chunks; the same events as one chunk at a time when chunk is a whole number of min_step_ns "
+      "and of max_step_ns if longer): fewer, larger batched renders "
+      "for a moving camera's per-pixel sampling, at the cost of that much latency; thresholds and noise set while "
+      "running apply from the next such span; -1: auto, 0.05 s with per-pixel sampling, else one chunk",
+      min=-1.0, max=MAX_SECONDS, read_only=True),
     Param("realtime_factor", 1.0, "1: real time; 2: twice as fast; 0: as fast as possible", min=0.0),
     Param("frame_id", "event_camera", "header.frame_id of events and camera info"),
     Param("qos", "default", "QoS profile of the published topics (default = reliable, keep-last 10; sensor_data = "
@@ -126,6 +132,8 @@ PARAMETERS = [
 
 #: The most camera poses made ahead for one chunk of per-pixel sampling (``_plan_poses``: 2 MB).
 POSE_GRID_MAX = 1 << 14
+#: ``render_ahead`` auto with per-pixel sampling (s): 5 default chunks a batch (orbit at 64x64 on 2 cores: RTF x1.5)
+AUTO_RENDER_AHEAD_S = 0.05
 #: A paced run this far behind its schedule (s, and at least two chunks) says so, once, with the lever to pull.
 LATE_WARN_S = 0.5
 
@@ -138,7 +146,8 @@ class PublishReport:
     sim_seconds: float = 0.0
     wall_seconds: float = 0.0
     render_seconds: float = 0.0
-    renders: int = 0
+    renders: int = 0             # distinct times rendered
+    render_calls: int = 0        # calls to the renderer (a batch is one)
     pixels_rendered: int = 0     # per-pixel sampling: pixel values rendered (whole images: 0)
     frames_fed: int = 0
     rays_total: int = 0          # render work without leave-out (scene: ray-primitive tests; field: rays)
@@ -371,6 +380,13 @@ class EventPublisher(Node):
         poses[~on] = self.track.poses(times[~on]) @ self.T_robot_cam
         return poses
 
+    def _chunks_ahead(self, chunk: int, per_pixel: bool) -> int:
+        """Chunks sampled in one go (``render_ahead``: at least one)."""
+        ahead = self.params["render_ahead"]
+        if ahead < 0:
+            ahead = AUTO_RENDER_AHEAD_S if per_pixel else 0.0
+        return max(1, int(round(ahead * NS / chunk)))
+
     def _speed_hint(self, moving: bool) -> str:
         """The lever that buys this run the most speed for its error (bench/bench_publish.py)."""
         p = self.params
@@ -478,6 +494,7 @@ class EventPublisher(Node):
             self.logger.info(f"adaptive sampling {'per pixel' if per_pixel else 'of whole images'}, min step "
                              f"{p['min_step_ns'] / 1e6:g} ms, "
                              + (f"motion guard {p['max_travel_px']:g} px" if guard else "no motion guard"))
+        ahead_chunks = self._chunks_ahead(chunk, per_pixel)
         wall0 = time.perf_counter()
         last_report = wall0
         next_info = self.t0
@@ -485,56 +502,65 @@ class EventPublisher(Node):
         t = self.t0
         self._publish_tf_static(self.t0)
         while t < self.t1 and self.ok():
-            tb = min(t + chunk, self.t1)
+            t_ahead = min(t + ahead_chunks * chunk, self.t1)
             self._apply_live(t)
-            self._publish_tf_clock(t)
-            subs = self.info_pub.subscribers()
-            if t >= next_info or subs > info_subs:     # periodically, and at once for a new subscriber
-                self._camera_info(t)
-                next_info = t + info_every
-            info_subs = subs
             # a moving camera's image travel: the guard's bound, and per pixel where anything can change
             if per_pixel and moving:
-                self._plan_poses(t, tb, p["min_step_ns"])
-            travel = self._field_travel(t, tb) if guard or (per_pixel and moving) else None
+                self._plan_poses(t, t_ahead, p["min_step_ns"])
+            travel = self._field_travel(t, t_ahead) if guard or (per_pixel and moving) else None
+            # top pieces no longer than a chunk: sampled ahead, the chunks' pieces are those of one at a time
             adaptive = dict(tolerance_c=p["tolerance_c"], min_step_ns=p["min_step_ns"],
-                            max_step_ns=min(p["max_step_ns"], tb - t), travel_px=travel if guard else None,
+                            max_step_ns=min(p["max_step_ns"], chunk, t_ahead - t), travel_px=travel if guard else None,
                             max_travel_px=p["max_travel_px"])
             if per_pixel:
-                events, st = simulate_pixels(self.render_pixels, t, tb, self.generator, **adaptive,
-                                             reach_px=None if travel is None else travel.reach)
+                sampled, st = simulate_pixels(self.render_pixels, t, t_ahead, self.generator, **adaptive,
+                                              reach_px=None if travel is None else travel.reach)
             elif p["adaptive"]:
-                events, st = simulate_renderer(self.render, t, tb, self.generator, **adaptive, **batched)
+                sampled, st = simulate_renderer(self.render, t, t_ahead, self.generator, **adaptive, **batched)
             else:
-                events, st = simulate_renderer(self.render, t, tb, self.generator, mode="fixed",
-                                               rate_hz=p["render_rate_hz"])
-            if evt and events.size:
-                events = quantize_to_us(events, time_base_ns=self.t0)
+                sampled, st = simulate_renderer(self.render, t, t_ahead, self.generator, mode="fixed",
+                                                rate_hz=p["render_rate_hz"])
             rep.render_seconds += st.render_seconds
             rep.renders += st.renders
+            rep.render_calls += st.render_calls
             rep.pixels_rendered += st.pixels_rendered
             rep.frames_fed += st.frames_fed
-            if factor > 0:
-                ahead = wall0 + (tb - self.t0) / NS / factor - time.perf_counter()
-                if -ahead > max(LATE_WARN_S, 2 * chunk / NS / factor) and not rep.fell_behind:
-                    rep.fell_behind = True
-                    self.logger.warn(f"falling behind real time x{factor:g} by {-ahead:.2f} s at t = "
-                                     f"{(tb - self.t0) / NS:.3f} s: {self._speed_hint(moving)}")
-                self.sleep(ahead)
-            if on_events is not None:
-                on_events(events)
-            rep.messages += encoder.write_events(self.events_pub.topic, events, width=self.camera.width,
-                                                 height=self.camera.height, encoding=p["encoding"],
-                                                 packet_ns=p["packet_ns"], frame_id=p["frame_id"])
-            rep.events += int(events.size)
-            t = tb
-            rep.sim_seconds = (t - self.t0) / NS
-            now = time.perf_counter()
-            if now - last_report > 2.0:
-                self.check_qos()
-                last_report = now
-                self.logger.info(f"t = {rep.sim_seconds:.3f} s, {rep.events} events, real-time factor "
-                                 f"{rep.sim_seconds / (now - wall0):.3g}")
+            # the events of (t, t_ahead], sorted by time, published one chunk after the other
+            ends = np.arange(t + chunk, t_ahead + chunk, chunk).clip(max=t_ahead)
+            cuts = np.searchsorted(sampled["t"], ends, side="right")
+            for tb, first, last in zip(ends.tolist(), [0, *cuts[:-1].tolist()], cuts.tolist()):
+                if not self.ok():
+                    break
+                self._publish_tf_clock(t)
+                subs = self.info_pub.subscribers()
+                if t >= next_info or subs > info_subs:     # periodically, and at once for a new subscriber
+                    self._camera_info(t)
+                    next_info = t + info_every
+                info_subs = subs
+                events = sampled[first:last]
+                if evt and events.size:
+                    events = quantize_to_us(events, time_base_ns=self.t0)
+                if factor > 0:
+                    ahead = wall0 + (tb - self.t0) / NS / factor - time.perf_counter()
+                    if -ahead > max(LATE_WARN_S, 2 * chunk / NS / factor) and not rep.fell_behind:
+                        rep.fell_behind = True
+                        self.logger.warn(f"falling behind real time x{factor:g} by {-ahead:.2f} s at t = "
+                                         f"{(tb - self.t0) / NS:.3f} s: {self._speed_hint(moving)}")
+                    self.sleep(ahead)
+                if on_events is not None:
+                    on_events(events)
+                rep.messages += encoder.write_events(self.events_pub.topic, events, width=self.camera.width,
+                                                     height=self.camera.height, encoding=p["encoding"],
+                                                     packet_ns=p["packet_ns"], frame_id=p["frame_id"])
+                rep.events += int(events.size)
+                t = tb
+                rep.sim_seconds = (t - self.t0) / NS
+                now = time.perf_counter()
+                if now - last_report > 2.0:
+                    self.check_qos()
+                    last_report = now
+                    self.logger.info(f"t = {rep.sim_seconds:.3f} s, {rep.events} events, real-time factor "
+                                     f"{rep.sim_seconds / (now - wall0):.3g}")
         rep.wall_seconds = time.perf_counter() - wall0
         rep.interrupted = t < self.t1
         rep.rtf = rep.sim_seconds / rep.wall_seconds if rep.wall_seconds > 0 else float("inf")

@@ -76,7 +76,8 @@ class SamplingStats:
     """What a :func:`simulate_renderer` call cost and did."""
 
     mode: str
-    renders: int = 0            # calls to render (each time rendered once)
+    renders: int = 0            # distinct times rendered (each time rendered once)
+    render_calls: int = 0       # calls to the renderer (a batch of times or pixels is one)
     frames_fed: int = 0         # frames given to the generator after the start frame
     intervals: int = 0          # accepted adaptive pieces (fixed mode: frame intervals)
     at_min_step: int = 0        # pieces of one grid step (min_step_ns), fed without a test
@@ -168,6 +169,7 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
         img = render(t)
         stats.render_seconds += time.perf_counter() - r0
         stats.renders += 1
+        stats.render_calls += 1
         return as_log(img, f"render at t={t} ns")
 
     def render_logs(times: list[int]) -> list[np.ndarray]:
@@ -175,6 +177,7 @@ def simulate_renderer(render: Callable[[int], np.ndarray], t_start, t_end,
         imgs = render_many(np.asarray(times, np.int64))
         stats.render_seconds += time.perf_counter() - r0
         stats.renders += len(times)
+        stats.render_calls += 1
         return [as_log(img, f"render at t={t} ns") for t, img in zip(times, imgs)]
 
     if generator.initialized:
@@ -365,6 +368,7 @@ def simulate_pixels(render_pixels: Callable[[np.ndarray, np.ndarray], np.ndarray
         if vals.shape != pix.shape:
             raise InputError(f"{where}: got values of shape {vals.shape}, expected {pix.shape}")
         stats.renders += int(np.unique(j).size)
+        stats.render_calls += 1
         stats.pixels_rendered += int(pix.size)
         return log_intensity(vals, generator.eps, where=where)
 
