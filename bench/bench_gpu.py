@@ -17,8 +17,10 @@ CPU, e.g. to check it).  Data: the quality benchmark's Jet-Down set (128x128, 18
    (``--bakes``: the publisher's ``bake_resolution``, 0 = the field itself).
 4. **Publisher, steady state** (part ``rtf``): the same publishes without the truth over a longer
    span (``--rtf-span``, default 1 s), after one untimed publish that loads what the first one
-   compiles: the real-time factor a stream keeps, with renders and render seconds; the static
-   camera with and without its batched renders (``--prefetch``: the publisher's ``prefetch_levels``).
+   compiles: the real-time factor a stream keeps, with renders, render calls and render seconds;
+   the static camera with and without its batched renders (``--prefetch``: the publisher's
+   ``prefetch_levels``), the orbit sampled one chunk at a time or ahead (``--ahead``:
+   ``render_ahead``) with rays per batch ``--ray-chunks`` (``ray_chunk``).
 
 Usage: python bench/bench_gpu.py [--device cuda] [--seconds S] [--quick] [--work DIR]
        -> bench/results/gpu.{json,png}
@@ -72,6 +74,10 @@ def main(argv=None):
                     help="published span of the steady-state part rtf, seconds (default 1)")
     ap.add_argument("--prefetch", default="0,3",
                     help="the publisher's prefetch_levels compared for the static camera in part rtf (default 0,3)")
+    ap.add_argument("--ahead", default="0,0.05,0.2",
+                    help="the publisher's render_ahead (s) compared for the orbit in part rtf (default 0,0.05,0.2)")
+    ap.add_argument("--ray-chunks", default="16384,131072",
+                    help="the publisher's ray_chunk compared for the orbit in part rtf (default 16384,131072)")
     ap.add_argument("--bakes", default="0,64", help="publisher bake_resolution values, comma-separated "
                                                     "(0: the field itself; default 0,64)")
     ap.add_argument("--work", default="/tmp/bench_gpu")
@@ -172,21 +178,24 @@ def main(argv=None):
         publisher_cost(run, train_h5, static=True, duration_ns=int(0.01e9), resolution=(sizes[0], sizes[0]),
                        publisher={"device": str(dev), "bake_resolution": bakes[-1]})     # untimed: warm-up
     prefetch = [int(v) for v in args.prefetch.split(",")]
-    for path, size, bake, levels in [(p, s, b, lv) for b in bakes for p, s, lvs in
-                                     [("static", s, prefetch) for s in sizes] + [("orbit", s, [0]) for s in sizes]
-                                     for lv in lvs if "rtf" in parts]:
+    ahead = [float(v) for v in args.ahead.split(",")]
+    ray_chunks = [int(v) for v in args.ray_chunks.split(",")]
+    # static camera: batched renders or not; orbit: sampled ahead or not, rays per batch
+    variants = {"static": [{"prefetch_levels": lv} for lv in prefetch],
+                "orbit": [{"render_ahead": a, "ray_chunk": rc} for a in ahead for rc in ray_chunks]}
+    for path, size, bake, extra in [(p, s, b, v) for b in bakes for p, s in
+                                    [("static", s) for s in sizes] + [("orbit", s) for s in sizes]
+                                    for v in variants[p] if "rtf" in parts]:
         c = publisher_cost(run, train_h5, static=path == "static", duration_ns=int(args.rtf_span * 1e9),
-                           resolution=(size, size), publisher={"device": str(dev), "bake_resolution": bake,
-                                                               "prefetch_levels": levels})
+                           resolution=(size, size), publisher={"device": str(dev), "bake_resolution": bake, **extra})
         row = {"path": path, "bake": bake, "width": size, "height": size, "span_s": args.rtf_span,
-               "prefetch_levels": levels,
-               **{k: c[k] for k in ("rtf", "wall_s", "source_s", "renders", "render_s", "pixels_rendered",
-                                    "events")}}
+               "prefetch_levels": extra.get("prefetch_levels", 0), **extra,
+               **{k: c[k] for k in ("rtf", "wall_s", "source_s", "renders", "render_calls", "render_s",
+                                    "pixels_rendered", "events")}}
         result["steady"].append(row)
-        log(f"steady {path} {size}x{size}{f' baked {bake}' if bake else ''}"
-            f"{f' prefetch {levels}' if path == 'static' else ''} on {dev}, {args.rtf_span:g} s: "
-            f"RTF {row['rtf']:.3g} ({row['renders']} renders, {row['render_s']:.2f} of {row['wall_s']:.2f} s "
-            f"rendering, {row['events']} events)")
+        log(f"steady {path} {size}x{size}{f' baked {bake}' if bake else ''} {extra} on {dev}, {args.rtf_span:g} s: "
+            f"RTF {row['rtf']:.3g} ({row['renders']} renders in {row['render_calls']} calls, {row['render_s']:.2f} "
+            f"of {row['wall_s']:.2f} s rendering, {row['events']} events)")
         write_json(partial, result)
     write_results(args.out, args.stem, result, plot)
     partial.unlink()
@@ -239,12 +248,16 @@ def plot_publisher(ax, result: dict) -> None:
                         ls="--" if bake else "-",
                         label=f"{camera} camera, " + (f"baked {bake}" if bake else "the field itself"))
     steady = result.get("steady", [])
-    for bake, camera, levels in sorted({(r["bake"], r["path"], r.get("prefetch_levels", 0)) for r in steady}):
-        rows = [r for r in steady if (r["bake"], r["path"], r.get("prefetch_levels", 0)) == (bake, camera, levels)]
+    def variant(r):        # rows before session 26 have neither render_ahead nor ray_chunk (one chunk, 16384)
+        return (r["bake"], r["path"], r.get("prefetch_levels", 0), r.get("render_ahead", 0.0), r.get("ray_chunk", 16384))
+
+    for bake, camera, levels, ahead, ray_chunk in sorted({variant(r) for r in steady}):
+        rows = [r for r in steady if variant(r) == (bake, camera, levels, ahead, ray_chunk)]
         ax.plot([r["width"] for r in rows], [r["rtf"] for r in rows], marker="o" if camera == "static" else "s",
                 lw=2.5, alpha=0.6, ls="--" if bake else "-",
                 label=f"{camera}, " + (f"baked {bake}" if bake else "field")
-                + (f", prefetch {levels}" if camera == "static" else "") + f", {rows[0]['span_s']:g} s steady")
+                + (f", prefetch {levels}" if camera == "static" else f", ahead {ahead:g} s, {ray_chunk} rays a batch")
+                + f", {rows[0]['span_s']:g} s steady")
     ax.axhline(1, color="k", ls="--", lw=1, label="real time")
     ax.set_xscale("log", base=2)
     ax.set_yscale("log")

@@ -301,5 +301,8 @@ def test_the_chunks_pose_grid_and_rendering_ahead_change_cost_not_events(tmp_pat
     # sampled ahead, still published chunk by chunk: the same messages as one chunk at a time
     assert messages[0.01, 0.0] == messages[0.01, 0.02] == messages[0.01, 0.04] == messages[0.01, -1.0] > 4
     # longer chunks, or chunks sampled ahead: fewer, larger render calls (auto: the whole 40 ms at once)
+    # rays per batch: cost, not events
+    _, small_batches = _publish(run, chunk=0.01, **{**kw, "ray_chunk": 37})
+    np.testing.assert_array_equal(small_batches, grid_ev)
     c = render_calls
     assert c[0.01, 0.0] > c[0.02, 0.0] == c[0.01, 0.02] > c[0.01, 0.04] == c[0.01, -1.0], c

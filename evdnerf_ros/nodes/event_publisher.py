@@ -101,6 +101,8 @@ PARAMETERS = [
       read_only=True),
     Param("device", "auto", "where a trained field is evaluated: auto (cuda when available), cpu or cuda",
       choices=("auto", "cpu", "cuda"), read_only=True),
+    Param("ray_chunk", 16384, "trained field: rays rendered per batch (a bound on memory; a GPU, where each batch is "
+      "a round trip of many small launches, may take far more)", min=1, max=1 << 24, read_only=True),
     Param("encoding", "evt3", "event message: evt3, evt2 or mono EventPacket, or array (dvs_msgs/EventArray)",
       choices=("evt3", "evt2", "mono", "array")),
     Param("packet_ns", 1_000_000, "longest time span of one event message (ns)", min=1),
@@ -297,7 +299,7 @@ class EventPublisher(Node):
         self.logger.info(f"trained field: static world {world}")
         return FieldSource(self._run(), self.camera, duration_ns=duration, leave_out=p["leave_out"],
                            reuse_static=p["reuse_static"], static_world=world, bake_resolution=p["bake_resolution"],
-                           bake_times=p["bake_times"], device=p["device"])
+                           bake_times=p["bake_times"], chunk=p["ray_chunk"], device=p["device"])
 
     def _camera_moves(self) -> bool:
         """Whether the camera pose changes during the published span (at its ends and every pose
