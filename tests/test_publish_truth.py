@@ -286,7 +286,11 @@ def test_the_chunks_pose_grid_and_rendering_ahead_change_cost_not_events(tmp_pat
     np.testing.assert_array_equal(grid_ev, plain_ev)
     # four chunks, each rendered in a few calls that no longer interpolate: one grid per chunk instead
     assert len(calls) - with_grid >= 4, (with_grid, len(calls))
+    # a chunk that is no whole number of steps: the grid's last point is the chunk's end
+    _, odd_plain = _publish(run, chunk=0.01, **{**kw, "min_step_ns": 300_000})
     monkeypatch.setattr(event_publisher, "POSE_GRID_MAX", 1 << 14)
+    _, odd_grid = _publish(run, chunk=0.01, **{**kw, "min_step_ns": 300_000})
+    np.testing.assert_array_equal(odd_grid, odd_plain)
     batches = []
     real_render = event_publisher.EventPublisher.render_pixels
     monkeypatch.setattr(event_publisher.EventPublisher, "render_pixels",
