@@ -7,6 +7,8 @@ drives ONE stateful :class:`~evdnerf_ros.sim.generator.EventGenerator` through i
 the adaptive time sampler (or at a fixed rate), packetises the events exactly as the
 bag writer does (EventPacket evt3 by default; evt2, mono or dvs EventArray) and publishes
 them on ``~/events`` with ``~/camera_info``. Stamps are trajectory times (int64 ns).
+``render_ahead`` samples several chunks in one go (a moving camera's per-pixel sampler: fewer,
+larger batched renders) and still publishes them chunk by chunk.
 With ``realtime_factor`` > 0 each chunk is published when the wall clock reaches its end
 (divided by the factor); 0 runs as fast as possible. The node logs its real-time factor
 (trajectory seconds per wall second).
