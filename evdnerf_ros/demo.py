@@ -99,6 +99,9 @@ class DemoOptions:
 
     train_minutes: float = option(TRAIN_MINUTES, "training budget of the demo's field, in minutes", low=0,
                                   low_open=True, high=10_080)
+    train_iterations: int = option(0, "stop the demo's training after this many iterations too, whichever of the "
+                                   "two budgets comes first (a result that does not hang on the machine's speed; "
+                                   "0: the minutes alone)", low=0)
     source: str = option("auto", "where the session comes from: the virtual rig (needs simavr and umockdev), "
                          "the simulator, or auto: the virtual rig where it can run, else the simulator",
                          choices=SOURCES)
@@ -152,7 +155,7 @@ def run_demo(out_dir: Path, options: DemoOptions | None = None, *, overwrite: bo
     chosen = choose_source(options.source)     # before any output: a missing source writes nothing
     with atomic_output(out_dir, overwrite=overwrite, directory=True) as tmp:
         tmp.mkdir()
-        summary = _run(tmp, out_dir, log, train_minutes, chosen)
+        summary = _run(tmp, out_dir, log, train_minutes, chosen, options.train_iterations or None)
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
     log(f"demo finished: outputs in {out_dir}/ (session/ with sync.png, conversions/, train.h5, "
         "event_images.png, event_rates.png, run/ with metrics.jsonl and eval_events.png, "
@@ -160,7 +163,8 @@ def run_demo(out_dir: Path, options: DemoOptions | None = None, *, overwrite: bo
     return summary
 
 
-def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: SessionSource) -> dict:
+def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: SessionSource,
+         train_iterations: int | None = None) -> dict:
     # torch is imported here, not with the module: every `evdnerf` command reads this module's
     # constants when it builds its parser
     from .eval.evaluate import run_eval, validation_eval
@@ -244,9 +248,10 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: Se
     n_train = sum(v["split"] == "train" and not v.get("moving_arc_deg") for v in views)
     backbone = _backbone(out / "train.h5", log)
     summary["backbone"] = backbone
-    log(f"training the {backbone} field for {train_minutes:g} min on the events of {n_train} views")
+    log(f"training the {backbone} field for {train_minutes:g} min"
+        + (f" or {train_iterations} iterations" if train_iterations else "") + f" on the events of {n_train} views")
     trained = run_train(out / "train.h5", out / "run", config=dict(TRAIN_CONFIG, backbone=backbone),
-                        minutes=train_minutes, eval_fn=validation_eval(), log=log)
+                        minutes=train_minutes, iters=train_iterations, eval_fn=validation_eval(), log=log)
     result = run_eval(out / "run", out / "train.h5", factors=(1, 4),
                       image_path=out / "run" / "eval_events.png", log=log)
     run_report([out / "run"], out / "report")
