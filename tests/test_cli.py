@@ -148,8 +148,8 @@ def test_every_subcommand_has_help():
 def test_demo_runs_end_to_end(tmp_path, capsys):
     out = tmp_path / "demo"
     # an iteration budget, not the machine's speed (60 iterations, what 6 s gave on a slow day, published
-    # no events: a field that young shows too little change), with a minute as the bound
-    assert main(["demo", "-o", str(out), "--train-minutes", "1", "--train-iterations", "120",
+    # no events: a field that young shows too little change), with two minutes as the bound
+    assert main(["demo", "-o", str(out), "--train-minutes", "2", "--train-iterations", "120",
                  "--source", "simulate"]) == 0
     assert "session source: simulate (--source simulate)" in capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
