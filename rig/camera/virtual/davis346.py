@@ -34,28 +34,26 @@ as the truth: ``emitted_events()`` / ``emitted_triggers()`` (in wire order) and 
 
 from __future__ import annotations
 
-import struct
 import time
 
 import numpy as np
 
-from evdnerf_ros.events.types import EVENT_DTYPE, TRIGGER_DTYPE
+from evdnerf_ros.events.types import EVENT_DTYPE
 
 from .. import davis346 as D
-from ..caer_words import TRIGGER_EDGE, TRIGGER_PULSE
 from ..davis_words import ApsFrame, DavisWordEncoder
 from ..device import SAMPLE_EVENT
-from .dvxplorer import _as_source
-from .scene_source import EmittedTruth
-from .usb import STALL, EmulatedUsbDevice, EndpointSpec
+from .caer_twin import CaerTwin
+from .usb import EndpointSpec
 
 __all__ = ["VirtualDAVIS346"]
 
 
-class VirtualDAVIS346(EmulatedUsbDevice, EmittedTruth):
+class VirtualDAVIS346(CaerTwin):
     """Emulated DAVIS346; see the module docstring. The defaults (firmware 6, logic 18 patch 1,
     chip DAVIS346B) are what both libcaer-era drivers and neuromorphic-drivers accept."""
 
+    DATA_ENDPOINT = D.DAVIS346.DATA_ENDPOINT
     ADC_CLOCK_MHZ = 64
     LOGIC_CLOCK_MHZ = 104
     USB_CLOCK_MHZ = 80
@@ -66,23 +64,15 @@ class VirtualDAVIS346(EmulatedUsbDevice, EmittedTruth):
                  frame_source=None, roi_filter: bool = True, speed: str = "super"):
         super().__init__(D.VID, D.PID, bcd_device=int(firmware) & 0xFF, serial=serial, manufacturer="iniVation",
                          product="DAVIS FX3", speed=speed,
-                         endpoints=(EndpointSpec(0x81, "interrupt", 1), EndpointSpec(D.DAVIS346.DATA_ENDPOINT)))
+                         endpoints=(EndpointSpec(0x81, "interrupt", 1), EndpointSpec(self.DATA_ENDPOINT)))
         self.width, self.height = D.DAVIS346.width, D.DAVIS346.height
-        self.source = _as_source(source, self.width, self.height)
+        self._init_stream(source, realtime=realtime, latency_us=latency_us, step_us=step_us,
+                          min_window_us=min_window_us, idle_wraps=idle_wraps, max_transfer_bytes=max_transfer_bytes)
         self.frame_source = frame_source
         if frame_source is None and hasattr(self.source, "_render") and \
                 (self.source.width, self.source.height) == (self.width, self.height):
             self.frame_source = self.source._render
-        self.realtime = bool(realtime)
-        # realtime: stream this far behind the wall clock (a camera's pipeline delay), so
-        # that a signal learnt late (the virtual rig's trigger, its joint angles) still
-        # lands at its true sensor time
-        self.latency_us = int(latency_us)
-        self.step_us = int(step_us)
-        self.min_window_us = int(min_window_us)
-        self.idle_wraps = bool(idle_wraps)
-        self.max_transfer_bytes = None if max_transfer_bytes is None else max(2, int(max_transfer_bytes) & ~1)
-        self.registers: dict[tuple[int, int], int] = {
+        self.registers.update({
             (D.SYSINFO, D.SYSINFO_LOGIC_VERSION): int(logic_version),
             (D.SYSINFO, D.SYSINFO_CHIP_IDENTIFIER): int(chip_id),
             (D.SYSINFO, D.SYSINFO_DEVICE_IS_MASTER): 1,
@@ -109,38 +99,18 @@ class VirtualDAVIS346(EmulatedUsbDevice, EmittedTruth):
             (D.APS, D.APS_FRAME_INTERVAL): 40000 * self.ADC_CLOCK_MHZ,
             (D.IMU, D.IMU_TYPE): 0,                          # no IMU samples are emulated
             (D.EXTINPUT, D.EXTINPUT_HAS_GENERATOR): 0,
-        }
+        })
         for p, v in D.default_chip_config():                 # the chip powers up as libcaer configures it
             self.registers[(D.BIAS, p)] = v
-        self.writes: list[tuple[int, int, int]] = []
-        self.reads: list[tuple[int, int]] = []
-        self.stalled: list = []
-        self._emitted: list[np.ndarray] = []
-        self._emitted_tr: list[np.ndarray] = []
         self.emitted_frames: list[ApsFrame] = []
-        self._pending_tr: list[tuple[int, int, int]] = []
-        self._backlog = bytearray()
-        self.bytes_streamed = 0
-        self.transfers_streamed = 0
-        self._clock_on = False
-        self._t0_ns = 0
-        self._produced_us = 0
         self._encoder = DavisWordEncoder(self.width, self.height)
         # load the encoder's compiled kernel now, not inside the first event transfer's USB handler
         # (~0.5 s there, seconds on a loaded machine: every other request of the device waits)
         DavisWordEncoder(self.width, self.height).encode(SAMPLE_EVENT)
-        self._thresholds = None
         self._aps_next_us: int | None = None
         self._aps_open: tuple[int, int] | None = None      # (start us, end us) of the frame being exposed
 
     # --- registers ------------------------------------------------------------------
-    def register(self, module: int, param: int) -> int:
-        with self.lock:
-            return self.registers.get((module, param), 0)
-
-    def _reg(self, module, param):
-        return self.registers.get((module, param), 0)
-
     def _write(self, module: int, param: int, value: int) -> None:
         self.writes.append((module, param, value))
         if module == D.SYSINFO:
@@ -181,11 +151,6 @@ class VirtualDAVIS346(EmulatedUsbDevice, EmittedTruth):
         return bool(self._clock_on and r(D.USB, D.USB_RUN) and r(D.MUX, D.MUX_RUN) and r(D.MUX, D.MUX_RUN_CHIP)
                     and (r(D.DVS, D.DVS_RUN) or r(D.APS, D.APS_RUN)))
 
-    @property
-    def streaming(self) -> bool:
-        with self.lock:
-            return self._streaming()
-
     def biases(self) -> dict[str, int]:
         """The bias parameters as the driver reads them (flat names of rig.camera.davis346.BIASES)."""
         with self.lock:
@@ -210,76 +175,7 @@ class VirtualDAVIS346(EmulatedUsbDevice, EmittedTruth):
         return (r(D.DVS, D.DVS_ROI_START_COLUMN), r(D.DVS, D.DVS_ROI_START_ROW), r(D.DVS, D.DVS_ROI_END_COLUMN),
                 r(D.DVS, D.DVS_ROI_END_ROW))
 
-    @property
-    def trigger_input_enabled(self) -> bool:
-        return bool(self.register(D.EXTINPUT, D.EXTINPUT_RUN_DETECTOR))
-
-    # --- USB hooks -------------------------------------------------------------------
-    def control(self, setup, data):
-        with self.lock:
-            reply = self._control(setup, bytes(data))
-            if reply is STALL:
-                self.stalled.append(setup)
-            return reply
-
-    def _control(self, setup, data):
-        if setup.kind != "vendor":
-            return STALL
-        if setup.request == D.REQUEST_CONFIG:
-            if setup.request_type == 0x40 and len(data) == 4:
-                self._write(setup.value, setup.index, struct.unpack(">I", data)[0])
-                return b""
-            if setup.request_type == 0xC0 and setup.length == 4:
-                self.reads.append((setup.value, setup.index))
-                return struct.pack(">I", self._reg(setup.value, setup.index) & 0xFFFFFFFF)
-            return STALL
-        if setup.request == D.REQUEST_CONFIG_MULTIPLE and setup.request_type == 0x40:
-            n = setup.value
-            if n == 0 or len(data) != 6 * n:
-                return STALL
-            for k in range(n):
-                m, p, v = struct.unpack_from(">BBI", data, 6 * k)
-                self._write(m, p, v)
-            return b""
-        return STALL
-
-    def bulk_in(self, endpoint: int, max_len: int):
-        with self.lock:
-            if endpoint != D.DAVIS346.DATA_ENDPOINT:
-                return None if endpoint == 0x81 else STALL
-            if self.max_transfer_bytes is not None:
-                max_len = min(max_len, self.max_transfer_bytes)
-            if not self._streaming():
-                return None
-            if len(self._backlog) < max_len:
-                self._produce(max_len)
-            if not self._backlog:
-                return None
-            n = min(max_len, len(self._backlog))
-            out = bytes(self._backlog[:n])
-            del self._backlog[:n]
-            self.bytes_streamed += len(out)
-            self.transfers_streamed += 1
-            return out
-
     # --- production -------------------------------------------------------------------
-    def _now_us(self) -> int:
-        if self.realtime:
-            now = (time.monotonic_ns() - self._t0_ns) // 1000 - self.latency_us
-            return min(now, self.source.ready_ns(1000 * now) // 1000)   # what is rendered
-        return self._produced_us + self.step_us
-
-    MAX_STEPS_PER_TRANSFER = 64
-
-    def _produce(self, want: int) -> None:
-        for _ in range(1 if self.realtime else self.MAX_STEPS_PER_TRANSFER):
-            target = self._now_us()
-            if target - self._produced_us < (self.min_window_us if self.realtime else 1):
-                return
-            self._produce_until(target)
-            if len(self._backlog) >= want:
-                return
-
     def _aps_marks(self, t1: int) -> list[tuple[int, int, int]]:
         """(time us, 0 begin / 1 end, end us) of the APS frame boundaries in (produced, t1]; a frame
         whose exposure ends after t1 is begun now and ended by a later call."""
@@ -354,42 +250,3 @@ class VirtualDAVIS346(EmulatedUsbDevice, EmittedTruth):
         self.emitted_frames.append(ApsFrame((adc << 6).astype(np.uint16), 0, 0, 1000 * t_start, 1000 * t_start,
                                             1000 * t_end, 1000 * t_end, True))
         return self._encoder.aps_end(t_end, adc)
-
-    def _take_triggers(self, t1_us: int) -> np.ndarray:
-        due = [p for p in self._pending_tr if p[0] <= t1_us]
-        if not due:
-            return np.empty(0, TRIGGER_DTYPE)
-        self._pending_tr = [p for p in self._pending_tr if p[0] > t1_us]
-        tr = np.empty(len(due), TRIGGER_DTYPE)
-        tr["t"] = [1000 * t for t, _i, _v in due]
-        tr["id"] = [i for _t, i, _v in due]
-        tr["value"] = [v for _t, _i, v in due]
-        return tr
-
-    def pulse_trigger(self, width_us: int = 100, at_us: int | None = None):
-        """A pulse on the sync connector's input (rising now or at ``at_us``, falling ``width_us``
-        later), reported as the detector is set (4,1 rising, 4,2 falling, 4,3 pulses). Returns the
-        (rising, falling) sensor times in ns, or None when the detector is off or not streaming."""
-        with self.lock:
-            if not self._streaming() or not self._reg(D.EXTINPUT, D.EXTINPUT_RUN_DETECTOR):
-                return None
-            now = (self._now_us() if self.realtime else self._produced_us + 1) if at_us is None else int(at_us)
-            rise = max(int(now), self._produced_us + 1)
-            fall = rise + max(1, int(width_us))
-            if self._reg(D.EXTINPUT, D.EXTINPUT_DETECT_RISING):
-                self._pending_tr.append((rise, TRIGGER_EDGE, 1))
-            if self._reg(D.EXTINPUT, D.EXTINPUT_DETECT_FALLING):
-                self._pending_tr.append((fall, TRIGGER_EDGE, 0))
-            if self._reg(D.EXTINPUT, D.EXTINPUT_DETECT_PULSES):
-                self._pending_tr.append((fall, TRIGGER_PULSE, 1))
-            self._pending_tr.sort()
-            return 1000 * rise, 1000 * fall
-
-    # --- truth --------------------------------------------------------------------------
-    def writes_since(self, start: int = 0) -> list[tuple[int, int, int]]:
-        with self.lock:
-            return list(self.writes[start:])
-
-    def sensor_time_ns(self) -> int:
-        with self.lock:
-            return 1000 * self._produced_us
