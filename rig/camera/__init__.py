@@ -7,8 +7,9 @@
         cam.start()
         chunk = cam.read(timeout_s=1.0)              # EventChunk | None
 
-Model modules: ``rig.camera.dvxplorer.DVXplorer`` (iniVation, libcaer protocol) and
-``rig.camera.evk4.EVK4`` (Prophesee, EVT 3.0); both subclass ``rig.camera.device.Device``.
+Model modules: ``rig.camera.dvxplorer.DVXplorer`` and ``rig.camera.davis346.DAVIS346`` (iniVation,
+libcaer protocol: both subclass ``rig.camera.libcaer_device.LibcaerDevice``, its configuration
+requests) and ``rig.camera.evk4.EVK4`` (Prophesee, EVT 3.0); all subclass ``rig.camera.device.Device``.
 Virtual twins (``rig.camera.virtual``) serve the same protocol through umockdev, so everything
 here also runs against them (in a process started with the virtual bus's environment).
 

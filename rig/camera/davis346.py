@@ -33,22 +33,20 @@ from the sensor's zero; external input edges as triggers; APS frames with ``aps=
 from __future__ import annotations
 
 import math
-import struct
 import time
 
 import numpy as np
 
 from .davis_words import DavisWordDecoder, DavisWordEncoder
-from .device import SAMPLE_EVENT, Device, EventChunk, UsbLink
+from .device import SAMPLE_EVENT, EventChunk, UsbLink
 from .dvxplorer import libcaer_packet
 from .errors import CameraError, CameraProtocolError
+from .libcaer_device import LibcaerDevice
 
 __all__ = ["DAVIS346", "BIASES", "DEFAULT_BIASES", "bias_current_pa", "coarse_fine_word", "thresholds_from_bias_words",
            "thresholds_from_biases"]
 
 VID, PID = 0x152A, 0x841A
-REQUEST_CONFIG = 0xBF
-REQUEST_CONFIG_MULTIPLE = 0xC2
 
 # modules and parameters (libcaer include/libcaer/devices/davis.h)
 MUX, DVS, APS, IMU, EXTINPUT, BIAS, SYSINFO, USB = 0, 1, 2, 3, 4, 5, 6, 9
@@ -157,7 +155,7 @@ def default_chip_config() -> list[tuple[int, int]]:
     return out
 
 
-class DAVIS346(Device):
+class DAVIS346(LibcaerDevice):
     """An iniVation DAVIS346 (module doc). ``DAVIS346(serial=None, aps=False)``: the first one found
     (or the one with that USB serial); with ``aps=True`` the APS runs while streaming and
     :meth:`read_frames` hands out the decoded frames."""
@@ -180,7 +178,6 @@ class DAVIS346(Device):
     CLEAR_SLEEP_S = 0.010
     BIAS_SETTLE_S = 0.200
     START_SETTLE_S = 0.050
-    CONTROL_TIMEOUT_MS = None          # the link's (rig.camera.device.TRANSFER_TIMEOUT_MS)
     #: libcaer's APS defaults (us)
     APS_EXPOSURE_US = 4000
     APS_FRAME_INTERVAL_US = 40000
@@ -198,33 +195,6 @@ class DAVIS346(Device):
         self.imu_type = 0
         self._trigger_input = False
         self._decoder: DavisWordDecoder | None = None
-
-    # ------------------------------------------------------------------ configuration I/O
-    def config_write(self, module: int, param: int, value: int) -> None:
-        """One 0xBF configuration write (libcaer's spiConfigSend)."""
-        self.link.control_out(0x40, REQUEST_CONFIG, module, param, struct.pack(">I", int(value) & 0xFFFFFFFF),
-                              self.CONTROL_TIMEOUT_MS, what=f"config write module {module} parameter "
-                              f"{param} = {int(value)}")
-
-    def config_read(self, module: int, param: int) -> int:
-        """One 0xBF configuration read (libcaer's spiConfigReceive): the 32-bit value."""
-        what = f"config read module {module} parameter {param}"
-        data = self.link.control_in(0xC0, REQUEST_CONFIG, module, param, 4, self.CONTROL_TIMEOUT_MS, what=what)
-        if len(data) != 4:
-            raise CameraProtocolError(f"{self.name}: {what}: {len(data)} bytes instead of 4; the device does not "
-                                      "speak libcaer's config protocol (wrong firmware?)")
-        return struct.unpack(">I", data)[0]
-
-    def config_write_many(self, writes) -> None:
-        """Several writes in one 0xC2 request (libcaer's spiConfigSendMultiple)."""
-        writes = [(int(m), int(p), int(v)) for m, p, v in writes]
-        if not writes:
-            return
-        if any(p > 0xFF or m > 0xFF for m, p, _ in writes):
-            raise CameraError(f"{self.name}: a 0xC2 batch carries 8-bit module / parameter addresses")
-        payload = b"".join(struct.pack(">BBI", m, p, v & 0xFFFFFFFF) for m, p, v in writes)
-        self.link.control_out(0x40, REQUEST_CONFIG_MULTIPLE, len(writes), 0, payload, self.CONTROL_TIMEOUT_MS,
-                              what=f"config batch of {len(writes)} writes")
 
     # ------------------------------------------------------------------ life cycle
     def _open(self) -> None:
@@ -431,11 +401,6 @@ class DAVIS346(Device):
     def warm_up(self) -> None:
         super().warm_up()
         libcaer_packet(SAMPLE_EVENT, 0)      # the recorder's packet encoder loads its kernel too
-
-    def _sensor_time_ns(self) -> int | None:
-        if self._decoder is None or self._decoder.words == 0:
-            return None
-        return self._decoder.time_us * 1000
 
     @property
     def decoder(self) -> DavisWordDecoder | None:

@@ -25,7 +25,6 @@ libcaer_driver publishes it (``evdnerf_ros.events.codecs`` "libcaer" records).
 
 from __future__ import annotations
 
-import struct
 import time
 
 import numpy as np
@@ -34,8 +33,9 @@ from evdnerf_ros.events.codecs import encode as encode_events
 from evdnerf_ros.events.types import EVENT_DTYPE
 
 from .caer_words import CaerWordDecoder, CaerWordEncoder
-from .device import SAMPLE_EVENT, Device, EventChunk, UsbLink
+from .device import SAMPLE_EVENT, EventChunk, UsbLink
 from .errors import CameraError, CameraProtocolError
+from .libcaer_device import LibcaerDevice
 
 __all__ = ["DVXplorer", "BIASES", "BIAS_PRESETS", "libcaer_packet", "thresholds_from_biases", "BASE_THRESHOLD"]
 
@@ -51,8 +51,6 @@ def thresholds_from_biases(current_on: int, current_off: int, base: float = BASE
     return (base * 2.0 ** ((int(current_on) - 4) / 4.0), base * 2.0 ** ((4 - int(current_off)) / 4.0))
 
 VID, PID = 0x152A, 0x8419
-REQUEST_CONFIG = 0xBF
-REQUEST_CONFIG_MULTIPLE = 0xC2
 
 # modules and parameters (libcaer include/libcaer/devices/dvxplorer.h)
 MUX, DVS, IMU, EXTINPUT, DEVICE_DVS, SYSINFO, USB = 0, 1, 3, 4, 5, 6, 9
@@ -153,7 +151,7 @@ CHIP_INIT = (
 )
 
 
-class DVXplorer(Device):
+class DVXplorer(LibcaerDevice):
     """An iniVation DVXplorer (module doc). ``DVXplorer(serial=None)``: the first one found,
     or the one with that USB serial string."""
 
@@ -175,7 +173,7 @@ class DVXplorer(Device):
     #: libcaer waits 10 ms after "everything off" and 50 ms after the multiplexer starts
     CLEAR_SLEEP_S = 0.010
     START_SETTLE_S = 0.050
-    CONTROL_TIMEOUT_MS = None          # the link's (rig.camera.device.TRANSFER_TIMEOUT_MS)
+    PARAM_FORMAT = "0x{:04x}"          # module 5's parameters are the sensor's 16-bit register addresses
 
     def __init__(self, serial: str | None = None, **kw):
         super().__init__(serial, **kw)
@@ -186,35 +184,7 @@ class DVXplorer(Device):
         self._trigger_input = False
         self._decoder: CaerWordDecoder | None = None
 
-    # ------------------------------------------------------------------ configuration I/O
-    def config_write(self, module: int, param: int, value: int) -> None:
-        """One 0xBF configuration write (libcaer's spiConfigSend)."""
-        self.link.control_out(0x40, REQUEST_CONFIG, module, param, struct.pack(">I", int(value) & 0xFFFFFFFF),
-                              self.CONTROL_TIMEOUT_MS, what=f"config write module {module} parameter "
-                              f"0x{param:04x} = {int(value)}")
-
-    def config_read(self, module: int, param: int) -> int:
-        """One 0xBF configuration read (libcaer's spiConfigReceive): the 32-bit value."""
-        what = f"config read module {module} parameter 0x{param:04x}"
-        data = self.link.control_in(0xC0, REQUEST_CONFIG, module, param, 4, self.CONTROL_TIMEOUT_MS, what=what)
-        if len(data) != 4:
-            raise CameraProtocolError(f"{self.name}: {what}: {len(data)} bytes instead of 4; the device does not "
-                                      "speak libcaer's config protocol (wrong firmware?)")
-        return struct.unpack(">I", data)[0]
-
-    def config_write_many(self, writes) -> None:
-        """Several writes in one 0xC2 request (libcaer's spiConfigSendMultiple): (module, param, value)
-        with param < 256."""
-        writes = [(int(m), int(p), int(v)) for m, p, v in writes]
-        if not writes:
-            return
-        if any(p > 0xFF or m > 0xFF for m, p, _ in writes):
-            raise CameraError(f"{self.name}: a 0xC2 batch carries 8-bit module / parameter addresses; write "
-                              "sensor registers one by one with config_write")
-        payload = b"".join(struct.pack(">BBI", m, p, v & 0xFFFFFFFF) for m, p, v in writes)
-        self.link.control_out(0x40, REQUEST_CONFIG_MULTIPLE, len(writes), 0, payload, self.CONTROL_TIMEOUT_MS,
-                              what=f"config batch of {len(writes)} writes")
-
+    # ------------------------------------------------------------------ sensor registers (module 5)
     def register_write(self, register: int, value: int) -> None:
         self.config_write(DEVICE_DVS, register, value & 0xFF)
 
@@ -349,11 +319,6 @@ class DVXplorer(Device):
     def warm_up(self) -> None:
         super().warm_up()
         libcaer_packet(SAMPLE_EVENT, 0)      # the recorder's packet encoder loads its kernel too
-
-    def _sensor_time_ns(self) -> int | None:
-        if self._decoder is None or self._decoder.words == 0:
-            return None
-        return self._decoder.time_us * 1000
 
     @property
     def decoder(self) -> CaerWordDecoder | None:

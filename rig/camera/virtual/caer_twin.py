@@ -22,8 +22,9 @@ import numpy as np
 
 from evdnerf_ros.events.types import EVENT_DTYPE, TRIGGER_DTYPE
 
-from .. import dvxplorer as caer          # libcaer's request and common module numbers
+from .. import dvxplorer as caer          # libcaer's common module numbers (the same on the DAVIS346)
 from ..caer_words import TRIGGER_EDGE, TRIGGER_PULSE
+from ..libcaer_device import REQUEST_CONFIG, REQUEST_CONFIG_MULTIPLE
 from .scene_source import EmittedTruth, GivenEvents
 from .usb import STALL, EmulatedUsbDevice
 
@@ -110,7 +111,7 @@ class CaerTwin(EmulatedUsbDevice, EmittedTruth):
     def _control(self, setup, data):
         if setup.kind != "vendor":
             return STALL
-        if setup.request == caer.REQUEST_CONFIG:
+        if setup.request == REQUEST_CONFIG:
             if setup.request_type == 0x40 and len(data) == 4:
                 self._write(setup.value, setup.index, struct.unpack(">I", data)[0])
                 return b""
@@ -118,7 +119,7 @@ class CaerTwin(EmulatedUsbDevice, EmittedTruth):
                 self.reads.append((setup.value, setup.index))
                 return struct.pack(">I", self._reg(setup.value, setup.index) & 0xFFFFFFFF)
             return STALL
-        if setup.request == caer.REQUEST_CONFIG_MULTIPLE and setup.request_type == 0x40:
+        if setup.request == REQUEST_CONFIG_MULTIPLE and setup.request_type == 0x40:
             n = setup.value
             if n == 0 or len(data) != 6 * n:
                 return STALL
