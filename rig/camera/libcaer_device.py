@@ -18,7 +18,8 @@ REQUEST_CONFIG_MULTIPLE = 0xC2
 
 
 class LibcaerDevice(Device):
-    """A camera configured through libcaer's register requests (module docstring)."""
+    """A camera configured through libcaer's register requests (module docstring); a subclass keeps
+    its word decoder (``time_us``, ``words``) in ``_decoder``, None until it streams."""
 
     CONTROL_TIMEOUT_MS = None          # the link's (rig.camera.device.TRANSFER_TIMEOUT_MS)
     #: how a parameter address reads in errors (the DVXplorer's sensor registers are 16-bit addresses)
