@@ -16,7 +16,6 @@ time, appended to ``_backlog``) and sets ``DATA_ENDPOINT``.
 from __future__ import annotations
 
 import struct
-import time
 
 import numpy as np
 
@@ -25,7 +24,7 @@ from evdnerf_ros.events.types import EVENT_DTYPE, TRIGGER_DTYPE
 from .. import dvxplorer as caer          # libcaer's common module numbers (the same on the DAVIS346)
 from ..caer_words import TRIGGER_EDGE, TRIGGER_PULSE
 from ..libcaer_device import REQUEST_CONFIG, REQUEST_CONFIG_MULTIPLE
-from .scene_source import EmittedTruth, GivenEvents
+from .scene_source import EmittedTruth, GivenEvents, live_sensor_us
 from .usb import STALL, EmulatedUsbDevice
 
 __all__ = ["CaerTwin", "as_source"]
@@ -151,8 +150,7 @@ class CaerTwin(EmulatedUsbDevice, EmittedTruth):
     # --- event production ---------------------------------------------------------------
     def _now_us(self) -> int:
         if self.realtime:
-            now = (time.monotonic_ns() - self._t0_ns) // 1000 - self.latency_us
-            return min(now, self.source.ready_ns(1000 * now) // 1000)   # what is rendered
+            return live_sensor_us(self.source, self._t0_ns, self.latency_us)
         return self._produced_us + self.step_us
 
     def _produce(self, want: int) -> None:

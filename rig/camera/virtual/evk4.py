@@ -44,7 +44,7 @@ from evdnerf_ros.events.types import EVENT_DTYPE, TRIGGER_DTYPE
 from .. import evk4_registers as R
 from ..device import SAMPLE_EVENT
 from ..evk4 import thresholds_from_biases       # the driver's model: one copy, the twin follows it
-from .scene_source import EmittedTruth
+from .scene_source import EmittedTruth, live_sensor_us
 from .usb import STALL, EmulatedUsbDevice, EndpointSpec
 
 __all__ = ["VirtualEVK4", "DEFAULT_FACTORY_BIASES", "thresholds_from_biases"]
@@ -280,8 +280,7 @@ class VirtualEVK4(EmulatedUsbDevice, EmittedTruth):
     # --- event production ---------------------------------------------------------------
     def _now_us(self) -> int:
         if self.realtime:
-            now = (time.monotonic_ns() - self._t0_ns) // 1000 - self.latency_us
-            return min(now, self.source.ready_ns(1000 * now) // 1000)   # what is rendered
+            return live_sensor_us(self.source, self._t0_ns, self.latency_us)
         return max(self._produced_us, 0) + self.step_us
 
     def _produce(self) -> None:

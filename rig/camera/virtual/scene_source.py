@@ -20,6 +20,7 @@ Two sources share one small interface (``width``, ``height``, ``t_ns``, ``events
 from __future__ import annotations
 
 import abc
+import time
 
 import numpy as np
 
@@ -305,6 +306,14 @@ class CenteredSource(EventSource):
 
     def ready_ns(self, t_ns: int) -> int:
         return self.inner.ready_ns(t_ns)
+
+
+def live_sensor_us(source: EventSource, t0_ns: int, latency_us: int) -> int:
+    """The sensor time (us) a live twin streams up to now: the wall clock since its sensor zero
+    (``t0_ns``, time.monotonic_ns()) less its pipeline ``latency_us``, and no further than the
+    source has rendered (``ready_ns``)."""
+    now = (time.monotonic_ns() - t0_ns) // 1000 - latency_us
+    return min(now, source.ready_ns(1000 * now) // 1000)
 
 
 class EmittedTruth:
