@@ -1,10 +1,17 @@
 """ament_python package `rig`: the EvDNeRF rig toolkit (python packages evdnerf_ros and rig)."""
 
 from glob import glob
+from pathlib import Path
 
 from setuptools import find_packages, setup
 
 PACKAGE = "rig"
+
+
+def _requirements() -> list[str]:
+    """requirements.txt without its comments (the one list of run-time dependencies)."""
+    text = (Path(__file__).resolve().parent / "requirements.txt").read_text()
+    return [line.split("#", 1)[0].strip() for line in text.splitlines() if line.split("#", 1)[0].strip()]
 
 setup(
     name=PACKAGE,
@@ -18,27 +25,14 @@ setup(
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/config/scenes", glob("config/scenes/*.yaml")),
+        # the servo firmware's sources: the virtual rig builds and runs them, `rig flash` flashes them
+        (f"share/{PACKAGE}/firmware", ["firmware/Makefile", "firmware/main.c", "firmware/PROTOCOL.md",
+                                       "firmware/README.md"]),
+        (f"share/{PACKAGE}/firmware/core", glob("firmware/core/*.[ch]")),
+        (f"share/{PACKAGE}/firmware/harness", glob("firmware/harness/*.c")),
     ],
     python_requires=">=3.10",
-    # Versions: torch is pinned exactly because any looser spec pulls GBs of CUDA wheels;
-    # cyclonedds is pinned exactly because evdnerf_ros.ros.transport's raw-CDR fast path
-    # calls the binding's private low-level writer/reader (tests/test_ros_transport.py checks it).
-    install_requires=[
-        "numpy>=1.24",
-        "pyyaml>=6",
-        "h5py>=3.8",
-        "matplotlib>=3.7",
-        "tqdm>=4.60",
-        "rosbags>=0.11,<0.12",
-        "trimesh>=4",  # OBJ/PLY/GLB mesh loading for scene objects
-        "torch==2.13.0",
-        "numba==0.68.1",  # EVT 2.0 / 3.0 decode/encode hot loops compiled to C speed
-        "pyserial>=3.5",  # the servo-rig firmware's serial link (rig.servo)
-        "cyclonedds==11.0.1",  # ROS 2-compatible DDS transport; private raw-CDR API, see above
-        "pyusb>=1.2",  # camera drivers: finding devices, control transfers (rig.camera)
-        "libusb1>=3.1",  # python-libusb1: queued async bulk streaming (rig.camera.streaming)
-        "opencv-contrib-python-headless>=4.8",  # aruco/ChArUco detection and calibration (evdnerf_ros.calib)
-    ],
+    install_requires=_requirements(),
     extras_require={
         "test": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "mcap>=1.1",
                  "mcap-ros2-support>=0.5", "expelliarmus==1.1.12",

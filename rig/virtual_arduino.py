@@ -1,7 +1,8 @@
 """The virtual Arduino: the real servo-rig firmware running in simavr behind a pseudo-terminal.
 
-``VirtualArduino`` builds ``firmware/build/{rig_servo.hex,virtual_arduino}`` with ``make``
-when they are missing or older than their sources, starts the harness and gives the pty
+``VirtualArduino`` builds ``rig_servo.hex`` and ``virtual_arduino`` from ``firmware/`` with ``make``
+when they are missing or older than their sources (into ``firmware/build`` of a source checkout; for
+an installed package, whose ``share/rig/firmware`` may be read-only, into ``~/.cache/rig/firmware/``), starts the harness and gives the pty
 path (open it with pyserial, or ``rig.servo.ServoClient``).  The harness logs every edge of
 D8 (trigger), D9 (scene servo) and D10 (turntable) with its simulated time; ``pin_log()``
 reads that log.  Unpaced the chip runs several times faster than real time (device
@@ -24,8 +25,25 @@ import numpy as np
 
 from evdnerf_ros.errors import EvdnerfError, InputError
 
-FIRMWARE_DIR = Path(__file__).resolve().parents[1] / "firmware"
-BUILD_DIR = FIRMWARE_DIR / "build"
+
+
+def _firmware_dirs() -> tuple[Path, Path]:
+    """(sources, build outputs): the package data's firmware/ (evdnerf_ros.share) and where make writes."""
+    import hashlib
+
+    from evdnerf_ros.share import is_source_checkout, share_dir, user_cache_dir
+
+    try:
+        src = share_dir() / "firmware"
+    except FileNotFoundError:
+        src = Path(__file__).resolve().parents[1] / "firmware"     # build() then says it is missing
+        return src, src / "build"
+    if is_source_checkout():
+        return src, src / "build"
+    return src, user_cache_dir() / "firmware" / hashlib.sha256(str(src).encode()).hexdigest()[:12]
+
+
+FIRMWARE_DIR, BUILD_DIR = _firmware_dirs()
 FIRMWARE_HEX = BUILD_DIR / "rig_servo.hex"
 HARNESS = BUILD_DIR / "virtual_arduino"
 #: Debian 12 packages the firmware, the harness and flashing need.
@@ -120,6 +138,9 @@ _build_lock = threading.Lock()
 
 def build(force: bool = False) -> Path:
     """Run ``make`` in firmware/ when an output is missing or older than its sources."""
+    if not (FIRMWARE_DIR / "Makefile").is_file():
+        raise VirtualArduinoError(f"{FIRMWARE_DIR}: the firmware sources are not installed; reinstall the "
+                                  "package (its setup.py installs them under share/rig/firmware)")
     sources = [p for p in FIRMWARE_DIR.rglob("*") if p.is_file() and p.suffix in (".c", ".h")
                and BUILD_DIR not in p.parents and "rig_servo" not in p.parts]
     sources.append(FIRMWARE_DIR / "Makefile")
@@ -133,7 +154,7 @@ def build(force: bool = False) -> Path:
                 f"{', '.join(need or ['make'])}; install them: "
                 + _install_hint(need or ["make"]))
         # a private build folder renamed into place: parallel builds never see half files
-        BUILD_DIR.mkdir(exist_ok=True)
+        BUILD_DIR.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=BUILD_DIR))
         try:
             res = subprocess.run(["make", "-C", str(FIRMWARE_DIR), f"BUILD={tmp}"],

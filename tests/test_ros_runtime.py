@@ -2,6 +2,7 @@
 profiles and the ROS environment, logging, Node construction."""
 
 import io
+import os
 import re
 
 import pytest
@@ -182,11 +183,29 @@ def test_ros_environment():
     for bad in ("233", "-1", "x"):
         with pytest.raises(InputError, match="ROS_DOMAIN_ID"):
             qos.domain_id({"ROS_DOMAIN_ID": bad})
-    assert qos.localhost_only({"ROS_LOCALHOST_ONLY": "1"})
-    assert not qos.localhost_only({"ROS_LOCALHOST_ONLY": "0"})
-    assert qos.localhost_only({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"})
-    assert not qos.localhost_only({"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET", "ROS_LOCALHOST_ONLY": "1"})
-    with pytest.raises(InputError, match="DISCOVERY_RANGE"):
-        qos.localhost_only({"ROS_AUTOMATIC_DISCOVERY_RANGE": "MOON"})
-    assert 'NetworkInterface name="lo"' in qos.domain_config({"ROS_LOCALHOST_ONLY": "1"})
-    assert qos.domain_config({}) is None
+    # rcl 9.2's precedence: ROS_LOCALHOST_ONLY=1 wins over the range Jazzy's setup.bash sets
+    d = qos.discovery({"ROS_LOCALHOST_ONLY": "1", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET",
+                       "ROS_STATIC_PEERS": "10.0.0.2"})
+    assert (d.range, d.static_peers) == ("LOCALHOST", ())
+    assert any("will be ignored" in w for w in d.warnings)
+    assert qos.discovery({"ROS_LOCALHOST_ONLY": "0", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}).range == "SUBNET"
+    assert qos.discovery({}).range == "SUBNET" and qos.discovery({}).warnings == ()
+    assert qos.discovery({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}).range == "LOCALHOST"
+    bad = qos.discovery({"ROS_AUTOMATIC_DISCOVERY_RANGE": "subnet"})     # rcl compares case-sensitively
+    assert bad.range == "LOCALHOST" and "assuming localhost only" in bad.warnings[0]
+    peers = qos.discovery({"ROS_STATIC_PEERS": "a.example;;10.0.0.2;" + "x" * 300})
+    assert peers.static_peers == ("a.example", "10.0.0.2") and "too long" in peers.warnings[0]
+    off = qos.discovery({"ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF", "ROS_STATIC_PEERS": "10.0.0.2"})
+    assert off.static_peers == () and "will be ignored" in off.warnings[0]
+    # rmw_cyclonedds_cpp 2.2's configuration for each
+    assert qos.domain_config({"ROS_LOCALHOST_ONLY": "1"}) == qos.LOOPBACK_XML
+    assert qos.domain_config({"ROS_AUTOMATIC_DISCOVERY_RANGE": "SYSTEM_DEFAULT"}) is None
+    subnet = qos.domain_config({})
+    assert "AllowMulticast" not in subnet and "<Peers>" not in subnet and "MaxAutoParticipantIndex>32" in subnet
+    local_peer = qos.domain_config({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_STATIC_PEERS": "10.0.0.2"})
+    assert '<Peer address="localhost"/><Peer address="10.0.0.2"/>' in local_peer
+    assert "<AllowMulticast>false" in local_peer and 'name="lo"' not in local_peer
+    assert '<Peer address="10.0.0.2"/>' in qos.domain_config({"ROS_STATIC_PEERS": "10.0.0.2"})
+    assert f"ros_discovery_off_{os.getpid()}" in qos.domain_config({"ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"})
+    assert qos.domain_config({"ROS_LOCALHOST_ONLY": "1", "CYCLONEDDS_URI": "file:///x.xml"}).endswith(
+        "</CycloneDDS>,file:///x.xml")

@@ -81,7 +81,10 @@ class DdsContext:
             raise TransportError(f"cyclonedds is not installed ({exc}); pip install cyclonedds==11.0.1, or run "
                                  "without DDS (evdnerf publish --no-dds)") from None
         self.domain_id = _qos.domain_id(env) if domain_id is None else int(domain_id)
-        self.config = _qos.domain_config(env) if config is None else config
+        if config is None:
+            _qos.log_discovery_warnings(env)
+            config = _qos.domain_config(env)
+        self.config = config
         try:
             from cyclonedds.qos import Policy, Qos
 

@@ -78,16 +78,14 @@ with the profile of ``servo_profile.py`` (the firmware's).  Keyframes use the C1
 Cameras must not start inside an object: every ring camera (training and validation) is
 checked against every object at the keyframe times and 33 times spread over the time range.
 
-Presets are YAML files in ``config/scenes/`` of the source checkout, found relative to this
-module as ``Path(__file__).parents[2] / "config" / "scenes"`` (a Python package cannot ship
-data in another top-level folder; an install also copies them to ``share/rig/config/scenes``,
-which is searched next).  ``load_scene(name_or_path)`` takes a preset name or a YAML path.
+Presets are the YAML files in ``config/scenes/`` of the package's data folder: the source
+checkout's, or an install's ``share/rig`` (:func:`evdnerf_ros.share.share_dir` says which).
+``load_scene(name_or_path)`` takes a preset name or a YAML path.
 """
 
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass, field
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
@@ -104,7 +102,6 @@ from ..geometry.poses import rigid
 from ..geometry.rotations import quat_from_euler_deg, quat_normalize, quat_to_matrix
 from ..geometry.trajectory import HingeMotion, KeyframeTrajectory, angle_keyframes
 
-PRESET_DIR = Path(__file__).resolve().parents[2] / "config" / "scenes"
 #: Largest magnitude of any number in a scene file (metres, degrees, intensities): far
 #: beyond any real rig, and small enough that products and float64 texture lookups stay exact.
 MAX_MAGNITUDE = 1e6
@@ -435,22 +432,26 @@ def _join(path: str, key: str) -> str:
 
 # ----------------------------------------------------------------------------- loading
 
+def preset_dir() -> Path:
+    """The folder of the preset scenes (``config/scenes`` of the package's data folder)."""
+    from ..share import share_dir
+
+    try:
+        return share_dir() / "config" / "scenes"
+    except FileNotFoundError as exc:
+        raise InputError(f"scene presets not found: {exc}") from None
+
+
 def list_presets() -> list[str]:
     """Names of the preset scenes (YAML files in the presets folder)."""
-    return sorted(p.stem for d in _preset_dirs() for p in d.glob("*.yaml"))
-
-
-def _preset_dirs() -> list[Path]:
-    dirs = [PRESET_DIR, Path(sys.prefix) / "share" / "rig" / "config" / "scenes"]
-    return [d for d in dirs if d.is_dir()]
+    return sorted(p.stem for p in preset_dir().glob("*.yaml"))
 
 
 def preset_path(name: str) -> Path:
-    for d in _preset_dirs():
-        p = d / f"{name}.yaml"
-        if p.is_file():
-            return p
-    raise InputError(f"unknown scene preset {name!r}; presets: {', '.join(list_presets())} "
+    p = preset_dir() / f"{name}.yaml"
+    if p.is_file():
+        return p
+    raise InputError(f"unknown scene preset {name!r}; presets in {preset_dir()}: {', '.join(list_presets())} "
                      "(or give the path of a scene YAML file)")
 
 
