@@ -333,6 +333,8 @@ def register(subparsers) -> None:
     p.add_argument("--params-file", help="ros__parameters YAML (node 'capture'), as config/capture.yaml")
     add_options(p, RigChoice, config=False)
     add_options(p, CaptureOptions)
+    # the virtual rig's child process: the ROS face of the process that launched it (NodeFace)
+    p.add_argument("--node-face", help=argparse.SUPPRESS)
     p.set_defaults(func=_cmd_capture)
 
 
@@ -381,18 +383,57 @@ def _resolve(args) -> tuple[RigChoice, CaptureOptions]:
     return rig, opts
 
 
+@dataclass(frozen=True)
+class NodeFace:
+    """What the capture node shows ROS: its ``--ros-args`` identity (name, namespace, remaps, log
+    level, use_sim_time) and the parameter values it reports. Under ``--virtual`` the child process
+    that opens the camera carries the launched process's face, not its own settings (the rig's
+    temporary servo port, the twin's calibration)."""
+    ros_argv: tuple = ()
+    values: dict | None = None          # None: the settings the node runs with
+
+    def save(self, path) -> None:
+        Path(path).write_text(yaml.safe_dump({"ros_argv": list(self.ros_argv), "values": self.values}))
+
+    @classmethod
+    def load(cls, path) -> "NodeFace":
+        from evdnerf_ros.yamlcheck import load_yaml
+
+        data = load_yaml(path, what="capture node face") or {}
+        return cls(tuple(data.get("ros_argv") or ()), data.get("values"))
+
+
+def ros_identity_argv(ros, use_sim_time=None) -> tuple:
+    """``--ros-args`` tokens of a parsed RosArgs that name the node (no parameters)."""
+    out = ["--ros-args"]
+    if ros.node_name:
+        out += ["-r", f"__node:={ros.node_name}"]
+    if ros.namespace:
+        out += ["-r", f"__ns:={ros.namespace}"]
+    for src, dst in ros.remaps.items():
+        out += ["-r", f"{src}:={dst}"]
+    if ros.log_level:
+        out += ["--log-level", ros.log_level]
+    if use_sim_time is not None:
+        out += ["-p", f"use_sim_time:={'true' if use_sim_time else 'false'}"]
+    return tuple(out) if len(out) > 1 else ()
+
+
 def _cmd_capture(args) -> int:
+    face = NodeFace.load(args.node_face) if getattr(args, "node_face", None) else NodeFace()
+    if hasattr(args, "node_face"):
+        del args.node_face
     rig, opts = _resolve(args)
-    return run(rig, opts)
+    return run(rig, opts, face)
 
 
-def run(rig: RigChoice, opts: CaptureOptions) -> int:
+def run(rig: RigChoice, opts: CaptureOptions, face: NodeFace = NodeFace()) -> int:
     if rig.virtual:
-        return _run_virtual(rig, opts)
-    return _run_real(rig, opts)
+        return _run_virtual(rig, opts, face)
+    return _run_real(rig, opts, face)
 
 
-def _run_real(rig: RigChoice, opts: CaptureOptions) -> int:
+def _run_real(rig: RigChoice, opts: CaptureOptions, face: NodeFace = NodeFace()) -> int:
     from .camera import open_camera
     from .servo import ServoClient
 
@@ -413,7 +454,7 @@ def _run_real(rig: RigChoice, opts: CaptureOptions) -> int:
     try:
         live = None
         if rig.live:
-            node = CaptureNode([], overrides=_node_values(rig, opts))
+            node = CaptureNode(list(face.ros_argv), overrides=face.values or _node_values(rig, opts))
             live = LiveEvents(node)
         with open_camera(serial=opts.camera_serial, model=opts.camera_model) as cam, \
                 ServoClient(opts.servo_port) as servo:
@@ -445,10 +486,12 @@ def _node_values(rig: RigChoice, opts: CaptureOptions) -> dict:
     return out
 
 
-def spawn_virtual_capture(vr, rig: RigChoice, opts: CaptureOptions, workdir, **popen_kw):
+def spawn_virtual_capture(vr, rig: RigChoice, opts: CaptureOptions, workdir, face: NodeFace = NodeFace(),
+                          **popen_kw):
     """Start `evdnerf capture` against the running virtual rig ``vr`` in a child process (the
     camera driver needs umockdev's preload), with the rig's truth as its calibration, geometry,
-    thresholds, camera serial and servo port. Returns the Popen."""
+    thresholds, camera serial and servo port; its node shows ``face`` (default: the settings
+    asked for, ``rig`` and ``opts``). Returns the Popen."""
     from .camera.virtual.usb import spawn_child
 
     workdir = Path(workdir)
@@ -463,13 +506,16 @@ def spawn_virtual_capture(vr, rig: RigChoice, opts: CaptureOptions, workdir, **p
                   c_pos=float(c_pos), c_neg=float(c_neg), live=bool(rig.live))
     config = workdir / "capture.yaml"
     config.write_text(yaml.safe_dump(values))
-    argv = [sys.executable, "-m", "evdnerf_ros", "capture", "-o", str(rig.output), "--config", str(config)]
+    face_file = workdir / "node_face.yaml"
+    NodeFace(face.ros_argv, face.values or _node_values(rig, opts)).save(face_file)
+    argv = [sys.executable, "-m", "evdnerf_ros", "capture", "-o", str(rig.output), "--config", str(config),
+            "--node-face", str(face_file)]
     if rig.resume:
         argv.append("--resume")
     return spawn_child(argv, vr.bus, env=vr.env(popen_kw.pop("env", None)), **popen_kw)
 
 
-def _run_virtual(rig: RigChoice, opts: CaptureOptions) -> int:
+def _run_virtual(rig: RigChoice, opts: CaptureOptions, face: NodeFace = NodeFace()) -> int:
     """The virtual rig here; the capture, against it, in a child process."""
     from .virtual_rig import VirtualRig
 
@@ -477,7 +523,7 @@ def _run_virtual(rig: RigChoice, opts: CaptureOptions) -> int:
                     rate_hz=rig.rate_hz) as vr, tempfile.TemporaryDirectory(prefix="evdnerf-capture-") as tmp:
         print(f"virtual rig: firmware in simavr on {vr.port}, {rig.virtual_model} twin (serial {vr.camera_serial}) "
               f"streaming {rig.scene} at {rig.scene_size[0]}x{rig.scene_size[1]}", file=sys.stderr)
-        proc = spawn_virtual_capture(vr, rig, opts, tmp, stdout=None, stderr=None)
+        proc = spawn_virtual_capture(vr, rig, opts, tmp, face, stdout=None, stderr=None)
 
         def forward(signum, _frame):
             proc.send_signal(signum)              # the child closes its view and exits
@@ -515,19 +561,24 @@ def main(argv=None) -> int:
                              "or --params-file")
         from evdnerf_ros.ros.parameters import load_params_file
 
+        node_name = ros.node_name or NODE
         params = {}
         for path in ros.params_files:
-            params.update(load_params_file(path, NODE))
+            params.update(load_params_file(path, node_name, ros.namespace or "/"))
         params.update(ros.params)
+        use_sim_time = params.pop("use_sim_time", None)   # every node's own parameter (Node), not an option
         ns = argparse.Namespace(**_split_params(params, "--ros-args"))
         rig, opts = _resolve(ns)
-        return run(rig, opts)
+        code = run(rig, opts, NodeFace(ros_identity_argv(ros, use_sim_time)))
     except EvdnerfError as exc:
         print(f"capture: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        return 130
+        return 0
+    # a stop asked for by SIGINT / SIGTERM (Ctrl-C, ros2 launch's shutdown) is a clean end for ROS
+    # tools (launch: "process has finished cleanly"); the view it cut is marked incomplete
+    return 0 if code in (130, 143) else code
 
 
-__all__ = ["RigChoice", "CaptureNode", "LiveEvents", "LiveBiases", "BiasChange", "bias_limits", "check_bias_values",
+__all__ = ["RigChoice", "NodeFace", "ros_identity_argv", "CaptureNode", "LiveEvents", "LiveBiases", "BiasChange", "bias_limits", "check_bias_values",
            "register", "run", "main", "spawn_virtual_capture"]

@@ -69,9 +69,9 @@ def _events(sub, timeout=2.0):
 def test_get_list_types_describe(served):
     node, client, *_ = served
     assert client.get("gain", "label", "camera.xyz", "nope") == [1.0, "x", [0.0, 0.0, 0.0], None]
-    assert client.list() == ["gain", "count", "mode", "label", "path", "camera.xyz"]
+    assert client.list() == ["gain", "count", "mode", "label", "path", "camera.xyz", "use_sim_time"]
     assert client.list(prefixes=["camera"]) == ["camera.xyz"]
-    assert client.list(depth=1) == ["gain", "count", "mode", "label", "path"]
+    assert client.list(depth=1) == ["gain", "count", "mode", "label", "path", "use_sim_time"]
     assert client.types("gain", "count", "label", "camera.xyz", "nope") == [DOUBLE, INTEGER, STRING, 8, 0]
     gain, label, path, mode = client.describe("gain", "label", "path", "mode")
     assert (gain.type, gain.read_only, gain.description) == (DOUBLE, False, "a live gain")

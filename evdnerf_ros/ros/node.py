@@ -1,7 +1,8 @@
 """The Node base: parameters and ``--ros-args``, names, DDS publishers and subscriptions,
 an optional rosbag2 sink, logging, and a clean shutdown on SIGINT / SIGTERM.
 
-A subclass lists its :class:`ParameterSpec` in ``PARAMETERS`` and runs its loop while
+A subclass lists its :class:`ParameterSpec` in ``PARAMETERS`` (every node also has rclpy's
+``use_sim_time``: true makes :meth:`Node.now_ns` follow ``/clock``) and runs its loop while
 :meth:`Node.ok`; the first SIGINT / SIGTERM only asks the loop to stop (a second SIGINT
 interrupts at once), and :meth:`Node.shutdown` then closes the bag (everything published
 so far is in it) and the DDS entities. ``dds=False`` runs the same node without any DDS
@@ -51,6 +52,11 @@ class Publisher:
         return self.dds.matched() if self.dds is not None else 0
 
 
+#: Declared by every node, as rclpy and rclcpp do.
+USE_SIM_TIME = ParameterSpec("use_sim_time", False, "the node's clock follows /clock (rosgraph_msgs/msg/Clock) "
+                             "instead of the system clock; messages keep the stamps their data carries", dynamic=True)
+
+
 class Node:
     #: default node name (``-r __node:=`` overrides it)
     NAME = "node"
@@ -67,7 +73,7 @@ class Node:
         self.namespace = validate_namespace(ros.namespace or namespace)
         self.logger = RosLogger(self.name, ros.log_level or "info", log_stream)
         self.remaps = ros.remaps
-        self.params = Parameters(self.PARAMETERS)
+        self.params = Parameters(self.PARAMETERS + [USE_SIM_TIME])
         unknown = []
         for f in ros.params_files:
             unknown += self.params.apply(load_params_file(f, self.name, self.namespace), f"--params-file {f}")
@@ -89,10 +95,14 @@ class Node:
         self._closed = False
         #: graph entry, /rosout and parameter services when on DDS (graph.attach); None otherwise
         self.ros = None
+        self._clock_sub = None
+        self._sim_ns = None                     # the latest /clock while use_sim_time is true
         if self._dds is not None:
             from .graph import attach
 
             self.ros = attach(self)
+        self.params.listeners.append(self._on_params)
+        self._follow_clock(bool(self.params["use_sim_time"]))
 
     # ----- names, endpoints
     def resolve(self, name: str) -> str:
@@ -145,6 +155,33 @@ class Node:
     def check_qos(self) -> None:
         for ep in [p.dds for p in self.publishers.values() if p.dds is not None] + self._subs:
             ep.check_qos()
+
+    # ----- time
+    def now_ns(self) -> int:
+        """The node's clock: /clock's latest time with use_sim_time (0 before the first, as rclpy), else
+        time.time_ns()."""
+        if self.params["use_sim_time"]:
+            if self._clock_sub is not None:
+                from .tf import clock_stamp_ns
+
+                samples = self._clock_sub.take_raw(256)
+                if samples:
+                    self._sim_ns = clock_stamp_ns(samples[-1][0])
+            return 0 if self._sim_ns is None else self._sim_ns
+        import time
+
+        return time.time_ns()
+
+    def _on_params(self, changes: dict) -> None:
+        if "use_sim_time" in changes:
+            self._follow_clock(bool(changes["use_sim_time"]))
+
+    def _follow_clock(self, on: bool) -> None:
+        if not on or self._clock_sub is not None or self._dds is None:
+            return
+        from .tf import CLOCK_QOS, CLOCK_TOPIC, CLOCK_TYPE
+
+        self._clock_sub = self.create_subscription(CLOCK_TOPIC, CLOCK_TYPE, CLOCK_QOS)
 
     # ----- lifecycle
     def ok(self) -> bool:

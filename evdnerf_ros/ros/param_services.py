@@ -1,8 +1,12 @@
-"""ROS 2 parameter services (rcl_interfaces) and ``/parameter_events`` over Cyclone DDS.
+"""A node's standard services over Cyclone DDS: the ROS 2 parameter services (rcl_interfaces),
+``/parameter_events`` and ``~/get_type_description`` (type_description_interfaces, REP 2011).
 
 Services of node ``/ns/name`` (what ``ros2 param`` calls): ``get_parameters``,
 ``set_parameters``, ``set_parameters_atomically``, ``list_parameters``,
-``describe_parameters``, ``get_parameter_types``. Service ``/ns/name/S`` is the DDS
+``describe_parameters``, ``get_parameter_types``; and, as every Jazzy rclcpp / rclpy node,
+``get_type_description``: the type description of any message or service type in the node's
+typestore whose RIHS01 hash matches the one asked for (no type sources: the node holds no .msg
+files). Service ``/ns/name/S`` is the DDS
 request topic ``rq/ns/name/SRequest`` (type ``rcl_interfaces::srv::dds_::S_Request_``)
 and the reply topic ``rr/ns/name/SReply`` (``..._Response_``), QoS as rclcpp's parameter
 services (reliable, volatile, keep-last 1000).
@@ -38,13 +42,15 @@ from .qos import PROFILES
 
 EVENTS_TOPIC = "/parameter_events"
 EVENT_TYPE = "rcl_interfaces/msg/ParameterEvent"
+#: short name -> service type
 SERVICES = {
-    "get_parameters": "GetParameters",
-    "set_parameters": "SetParameters",
-    "set_parameters_atomically": "SetParametersAtomically",
-    "list_parameters": "ListParameters",
-    "describe_parameters": "DescribeParameters",
-    "get_parameter_types": "GetParameterTypes",
+    "get_parameters": "rcl_interfaces/srv/GetParameters",
+    "set_parameters": "rcl_interfaces/srv/SetParameters",
+    "set_parameters_atomically": "rcl_interfaces/srv/SetParametersAtomically",
+    "list_parameters": "rcl_interfaces/srv/ListParameters",
+    "describe_parameters": "rcl_interfaces/srv/DescribeParameters",
+    "get_parameter_types": "rcl_interfaces/srv/GetParameterTypes",
+    "get_type_description": rostypes.TYPE_DESCRIPTION_SERVICE,
 }
 #: rcl_interfaces/msg/ParameterType
 NOT_SET, BOOL, INTEGER, DOUBLE, STRING, BYTE_ARRAY, BOOL_ARRAY, INTEGER_ARRAY, DOUBLE_ARRAY, STRING_ARRAY = range(10)
@@ -147,8 +153,7 @@ class ParameterServer:
         self._services = []
         self._waitset = WaitSet(ctx.participant)
         base = self.fqn
-        for short, srv in SERVICES.items():
-            stype = f"rcl_interfaces/srv/{srv}"
+        for short, stype in SERVICES.items():
             thash = rostypes.type_hash(stype)
             full = f"{base}/{short}"
             req = DdsSubscription(ctx, full, stype + "_Request", qos, dds_name=f"rq{full}Request",
@@ -157,7 +162,7 @@ class ParameterServer:
             rep = DdsPublisher(ctx, full, stype + "_Response", qos, dds_name=f"rr{full}Reply",
                                idl=rostypes.idl_struct(stype + "_Response", True), type_hash=thash, log=self._log)
             self._waitset.attach(req._cond)
-            self._services.append((short, srv, req, rep))
+            self._services.append((short, stype, req, rep))
         self.requests = 0
         self.malformed = 0
         self._stop = threading.Event()
@@ -173,7 +178,7 @@ class ParameterServer:
         def plist(d):
             return [_msg("Parameter", name=k, value=to_parameter_value(v, specs[k].ros_type)) for k, v in (d or {}).items()]
 
-        sec, nsec = divmod(time.time_ns(), 1_000_000_000)
+        sec, nsec = divmod(self.node.now_ns(), 1_000_000_000)
         ev = _msg("ParameterEvent", stamp=rostypes.message("builtin_interfaces/msg/Time", sec=sec, nanosec=nsec),
                   node=self.fqn, new_parameters=plist(new), changed_parameters=plist(changed), deleted_parameters=[])
         self.events.publish_raw(rostypes.serialize(ev, EVENT_TYPE))
@@ -194,7 +199,7 @@ class ParameterServer:
     def spin_once(self) -> int:
         """Answer every pending request; returns how many were answered."""
         done = 0
-        for short, srv, req, rep in self._services:
+        for short, stype, req, rep in self._services:
             try:
                 samples = req.take_raw(64)
             except Exception as exc:  # noqa: BLE001
@@ -204,9 +209,9 @@ class ParameterServer:
                 self.requests += 1
                 try:
                     guid, seq, body = split_request(data)
-                    request = rostypes.deserialize(body, f"rcl_interfaces/srv/{srv}_Request")
+                    request = rostypes.deserialize(body, f"{stype}_Request")
                     response = getattr(self, "_" + short)(request)
-                    out = rostypes.serialize(response, f"rcl_interfaces/srv/{srv}_Response")
+                    out = rostypes.serialize(response, f"{stype}_Response")
                 except Exception as exc:  # noqa: BLE001 - bytes from the network: log, ignore, keep serving
                     self.malformed += 1
                     self._log("warn", f"service {req.topic}: ignored a malformed request ({len(bytes(data))} bytes: "
@@ -330,6 +335,17 @@ class ParameterServer:
         return rostypes.message("rcl_interfaces/srv/SetParametersAtomically_Response",
                                 result=_result(self._apply(req.parameters, True)[0]))
 
+    def _get_type_description(self, req):
+        name, want = str(req.type_name), str(req.type_hash)
+        try:
+            have = rostypes.type_hash(name)
+        except InputError:
+            return rostypes.type_description_response(None, f"type {name!r} is not known to this node")
+        if want and want != have:
+            return rostypes.type_description_response(None, f"type {name!r}: hash {want} asked for, this node "
+                                                            f"has {have}")
+        return rostypes.type_description_response(name, "")
+
     def close(self) -> None:
         self._stop.set()
         if self._thread.is_alive() and self._thread is not threading.current_thread():
@@ -350,15 +366,14 @@ class ParameterClient:
         self.guid = client_id if client_id is not None else (os.getpid() << 20) ^ id(self) & 0xFFFFFFFFFFFF
         self._seq = 0
         self._ep = {}
-        for short, srv in SERVICES.items():
-            stype = f"rcl_interfaces/srv/{srv}"
+        for short, stype in SERVICES.items():
             full = f"{node_fqn}/{short}"
             thash = rostypes.type_hash(stype)
             req = DdsPublisher(ctx, full, stype + "_Request", qos, dds_name=f"rq{full}Request",
                                idl=rostypes.idl_struct(stype + "_Request", True), type_hash=thash)
             rep = DdsSubscription(ctx, full, stype + "_Response", qos, dds_name=f"rr{full}Reply",
                                   idl=rostypes.idl_struct(stype + "_Response", True), type_hash=thash)
-            self._ep[short] = (srv, req, rep)
+            self._ep[short] = (stype, req, rep)
 
     def wait_for_service(self, timeout_s: float = 5.0) -> bool:
         deadline = time.monotonic() + timeout_s
@@ -369,11 +384,10 @@ class ParameterClient:
         return False
 
     def call(self, short: str, timeout_s: float = 5.0, **fields):
-        srv, req, rep = self._ep[short]
+        stype, req, rep = self._ep[short]
         self._seq += 1
         seq = self._seq
-        body = rostypes.serialize(rostypes.message(f"rcl_interfaces/srv/{srv}_Request", **fields),
-                                  f"rcl_interfaces/srv/{srv}_Request")
+        body = rostypes.serialize(rostypes.message(f"{stype}_Request", **fields), f"{stype}_Request")
         req.publish_raw(join_reply(self.guid, seq, body))
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
@@ -381,7 +395,7 @@ class ParameterClient:
             for data, _ in rep.take_raw(64):
                 guid, s, cdr = split_request(data)
                 if guid == self.guid and s == seq:
-                    return rostypes.deserialize(cdr, f"rcl_interfaces/srv/{srv}_Response")
+                    return rostypes.deserialize(cdr, f"{stype}_Response")
         raise InputError(f"service {req.topic}: no reply within {timeout_s} s; is the node running on this domain?")
 
     # what `ros2 param get/set/list/describe` does

@@ -66,8 +66,18 @@ def typestore():
     types = {}
     for name, (req, rep) in RCL_SERVICES.items():
         types.update(_service_types(f"rcl_interfaces/srv/{name}", req, rep))
+    types.update(_service_types(TYPE_DESCRIPTION_SERVICE, *_TYPE_DESCRIPTION_TEXTS))
     ts.register(types)
     return ts
+
+
+#: The service every Jazzy node offers as ``~/get_type_description`` (REP 2011).
+TYPE_DESCRIPTION_SERVICE = "type_description_interfaces/srv/GetTypeDescription"
+_TYPE_DESCRIPTION_TEXTS = ("string type_name\nstring type_hash\nbool include_type_sources\n",
+                           "bool successful\nstring failure_reason\n"
+                           "type_description_interfaces/TypeDescription type_description\n"
+                           "type_description_interfaces/TypeSource[] type_sources\n"
+                           "type_description_interfaces/KeyValue[] extra_information\n")
 
 
 def register_service(srv: str, request: str, response: str) -> None:
@@ -82,6 +92,76 @@ def type_hash(typename: str) -> str:
     if typename not in ts.fielddefs:
         raise InputError(f"type {typename!r} is not known; use a ROS 2 message type such as 'std_msgs/msg/String'")
     return ts.hash_rihs01(typename)
+
+
+#: type_description_interfaces/msg/FieldType ids (REP 2011): base types; +48 array, +96 bounded, +144 sequence
+_FIELD_TYPE_IDS = {"nested": 1, "int8": 2, "uint8": 3, "int16": 4, "uint16": 5, "int32": 6, "uint32": 7,
+                   "int64": 8, "uint64": 9, "float32": 10, "float64": 11, "char": 13, "wchar": 14, "bool": 15,
+                   "byte": 16, "string": 17, "wstring": 18, "bounded_string": 21}
+
+
+def type_description(typename: str) -> dict:
+    """The REP 2011 type description of ``typename`` as a dict (``type_description`` and the sorted
+    ``referenced_type_descriptions``): the JSON whose sha256 is its RIHS01 hash (:func:`type_hash`
+    checks that it is)."""
+    from rosbags.interfaces import Nodetype as N
+
+    ts = typestore()
+    if typename not in ts.fielddefs:
+        raise InputError(f"type {typename!r} is not known; use a ROS 2 message type such as 'std_msgs/msg/String'")
+    structs: dict[str, dict] = {}
+
+    def field(name, node):
+        kind, spec = node
+        increment = capacity = string_capacity = 0
+        if kind == N.ARRAY:
+            increment, capacity, (kind, spec) = 48, spec[1], spec[0]
+        elif kind == N.SEQUENCE:
+            increment, capacity, (kind, spec) = (96, spec[1], spec[0]) if spec[1] else (144, 0, spec[0])
+        nested = ""
+        if kind == N.NAME:
+            tid, nested = increment + 1, spec
+            struct(spec)
+        elif spec[0] == "string" and spec[1]:
+            tid, string_capacity = increment + _FIELD_TYPE_IDS["bounded_string"], spec[1]
+        else:
+            tid = increment + _FIELD_TYPE_IDS[spec[0]]
+        return {"name": name, "type": {"type_id": tid, "capacity": capacity, "string_capacity": string_capacity,
+                                       "nested_type_name": nested}}
+
+    def struct(name):
+        if name not in structs:
+            structs[name] = {}                  # placed first: the fields keep rosbags' order of discovery
+            fields = ts.fielddefs[name][1] or [("structure_needs_at_least_one_member", (N.BASE, ("uint8", 0)))]
+            structs[name] = {"type_name": name, "fields": [field(n, d) for n, d in fields]}
+        return structs[name]
+
+    main = struct(typename)
+    return {"type_description": main,
+            "referenced_type_descriptions": [d for n, d in sorted(structs.items()) if n != typename]}
+
+
+def type_description_response(typename: str | None, failure: str):
+    """A GetTypeDescription response: ``typename``'s description, or (None) unsuccessful with ``failure``."""
+    ts = typestore()
+    m = ts.types
+    td = "type_description_interfaces/msg/"
+
+    def individual(d):
+        return m[td + "IndividualTypeDescription"](type_name=d["type_name"], fields=[
+            m[td + "Field"](name=f["name"], type=m[td + "FieldType"](**f["type"]), default_value="")
+            for f in d["fields"]])
+
+    if typename is None:
+        desc = m[td + "TypeDescription"](type_description=individual({"type_name": "", "fields": []}),
+                                         referenced_type_descriptions=[])
+    else:
+        d = type_description(typename)
+        desc = m[td + "TypeDescription"](type_description=individual(d["type_description"]),
+                                         referenced_type_descriptions=[individual(r) for r in
+                                                                       d["referenced_type_descriptions"]])
+    return m[f"{TYPE_DESCRIPTION_SERVICE}_Response"](successful=typename is not None, failure_reason=failure,
+                                                     type_description=desc, type_sources=[], extra_information=[])
 
 
 def dds_type_name(typename: str) -> str:

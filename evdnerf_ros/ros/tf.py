@@ -17,6 +17,7 @@ from . import rostypes
 from .qos import BEST_EFFORT, RELIABLE, TRANSIENT_LOCAL, VOLATILE, QosProfile
 
 TF_TYPE = "tf2_msgs/msg/TFMessage"
+CLOCK_TOPIC = "/clock"
 CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
 TF_QOS = QosProfile(RELIABLE, VOLATILE, 100)
 TF_STATIC_QOS = QosProfile(RELIABLE, TRANSIENT_LOCAL, 1)
@@ -52,6 +53,12 @@ def tf_message(transforms) -> bytes:
 
 def clock_message(stamp_ns: int) -> bytes:
     return rostypes.serialize(rostypes.message(CLOCK_TYPE, clock=_time(stamp_ns)), CLOCK_TYPE)
+
+
+def clock_stamp_ns(data) -> int:
+    """A rosgraph_msgs/msg/Clock CDR -> its time in int64 ns."""
+    st = rostypes.deserialize(bytes(data), CLOCK_TYPE).clock
+    return int(st.sec) * 1_000_000_000 + int(st.nanosec)
 
 
 def decode_transforms(data) -> list[tuple[str, str, int, np.ndarray]]:
