@@ -73,6 +73,17 @@ ensure_packages "the virtual USB cameras" $USB_PACKAGES
 # type generator and the `fastdds` discovery tool.
 FASTDDS_PACKAGES="libfastrtps-dev fastddsgen fastdds-tools cmake g++"
 ensure_packages "the Fast DDS peer" $FASTDDS_PACKAGES
+# The real ROS 2 of the ROS tests (tests/real_ros2.py: ../shared/ros2's Jazzy, unpacked into
+# ~/.cache/evdnerf-ros2, and our package built into it with colcon as docs/ros2.md says): its
+# run-time libraries and Python modules, and Debian's colcon with the extensions a ROS workspace uses.
+ROS2_PACKAGES="zstd cyclonedds-dev libspdlog-dev libyaml-dev python3-numpy python3-yaml python3-lark
+  python3-netifaces python3-psutil python3-osrf-pycommon python3-argcomplete python3-packaging
+  python3-importlib-metadata python3-catkin-pkg python3-empy libsqlite3-0 libzstd1 liblz4-1 libyaml-cpp0.7
+  libconsole-bridge1.0 libtinyxml2-9 python3-venv colcon python3-colcon-core python3-colcon-ros
+  python3-colcon-python-setup-py python3-colcon-bash python3-colcon-recursive-crawl
+  python3-colcon-package-selection python3-colcon-parallel-executor python3-colcon-output
+  python3-colcon-library-path python3-colcon-package-information"
+ensure_packages "the real ROS 2" $ROS2_PACKAGES
 if [ -d /usr/lib/python3/dist-packages/gi ] && ! .venv/bin/python -c "import gi" 2>/dev/null; then
   site=$(.venv/bin/python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")
   mkdir -p .venv/system-gi
@@ -84,7 +95,7 @@ fi
 
 # Reinstall only when the package definition changed since the last set-up.
 stamp=.venv/.quickstart-stamp
-want=$(cat setup.py setup.cfg package.xml | sha256sum | cut -d' ' -f1)
+want=$(cat setup.py setup.cfg package.xml pyproject.toml requirements.txt | sha256sum | cut -d' ' -f1)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   .venv/bin/python -m pip install -q --upgrade pip
   .venv/bin/python -m pip install -q -e '.[test]'

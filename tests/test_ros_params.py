@@ -225,3 +225,52 @@ def test_event_publisher_thresholds_and_noise_change_live():
     # the new generator went on from the old one's log image, not from scratch
     assert g.initialized and g.t_ns > node.t0
     np.testing.assert_array_equal(np.asarray(node.params["camera.xyz"]), [0.0, 0.0, 0.0])
+
+
+def test_type_description_service(served):
+    """~/get_type_description (REP 2011): the description whose JSON hashes to the type's RIHS01."""
+    import hashlib
+    import json
+
+    _node, client, *_ = served
+    name = "sensor_msgs/msg/CameraInfo"
+    rep = client.call("get_type_description", type_name=name, type_hash=rostypes.type_hash(name),
+                      include_type_sources=True)
+    assert rep.successful and rep.failure_reason == ""
+    got = rep.type_description
+    assert got.type_description.type_name == name
+    assert [f.name for f in got.type_description.fields][:3] == ["header", "height", "width"]
+    as_dict = {"type_description": {"type_name": got.type_description.type_name, "fields": [
+        {"name": f.name, "type": {"type_id": int(f.type.type_id), "capacity": int(f.type.capacity),
+                                  "string_capacity": int(f.type.string_capacity),
+                                  "nested_type_name": f.type.nested_type_name}} for f in got.type_description.fields]},
+               "referenced_type_descriptions": [{"type_name": r.type_name, "fields": [
+                   {"name": f.name, "type": {"type_id": int(f.type.type_id), "capacity": int(f.type.capacity),
+                                             "string_capacity": int(f.type.string_capacity),
+                                             "nested_type_name": f.type.nested_type_name}} for f in r.fields]}
+                   for r in got.referenced_type_descriptions]}
+    assert "RIHS01_" + hashlib.sha256(json.dumps(as_dict).encode()).hexdigest() == rostypes.type_hash(name)
+    wrong = client.call("get_type_description", type_name=name, type_hash="RIHS01_" + "0" * 64,
+                        include_type_sources=False)
+    assert not wrong.successful and "hash" in wrong.failure_reason
+    unknown = client.call("get_type_description", type_name="no_pkg/msg/Nothing", type_hash="",
+                          include_type_sources=False)
+    assert not unknown.successful and "not known" in unknown.failure_reason
+
+
+def test_use_sim_time_follows_clock(served):
+    """use_sim_time (every node's parameter): set live, the node's clock follows /clock."""
+    from evdnerf_ros.ros import tf as rtf
+    from evdnerf_ros.ros.transport import DdsPublisher
+
+    node, client, *_ = served
+    assert client.get("use_sim_time") == [False]
+    assert abs(node.now_ns() - time.time_ns()) < 5_000_000_000
+    assert client.set(use_sim_time=True) == [(True, "")]
+    assert node.now_ns() == 0                        # no /clock yet, as rclpy's clock
+    clock = DdsPublisher(client.ctx, "/clock", rtf.CLOCK_TYPE, rtf.CLOCK_QOS)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and node.now_ns() != 123_456_789_012:
+        clock.publish_raw(rtf.clock_message(123_456_789_012))
+        time.sleep(0.05)
+    assert node.now_ns() == 123_456_789_012
