@@ -83,8 +83,8 @@ def test_discovery_info_lists_the_node_and_its_endpoint_gids():
     [entry] = info["nodes"]
     assert (entry["namespace"], entry["name"]) == ("/cam", "listener")
     assert pub.dds.gid.hex() in entry["writers"] and node.ros.rosout.writer.gid.hex() in entry["writers"]
-    # 6 parameter services: a request reader and a reply writer each; /parameter_events, /rosout
-    # 7 services (6 parameter services + get_type_description): a request reader and a reply writer each
+    # 7 services (6 parameter services + get_type_description): a request reader and a reply writer each;
+    # /parameter_events, /rosout
     assert len(entry["readers"]) == 7 and len(entry["writers"]) == 7 + 2 + 1
     assert all(g[:24] == info["gid"][:24] for g in entry["readers"] + entry["writers"])   # same GUID prefix
     late = node.create_subscription("in", "std_msgs/msg/String")
