@@ -600,7 +600,7 @@ def summarise(runs: list, sizes: list, info: dict) -> list:
 
 def plot(res: dict, path: Path) -> None:
     plt = pyplot()
-    from matplotlib.ticker import NullFormatter, ScalarFormatter
+    from matplotlib.ticker import ScalarFormatter
 
     rows = res["summary"]
     sizes = res["sizes"]
@@ -643,11 +643,8 @@ def plot(res: dict, path: Path) -> None:
         for x, v, s in zip(bx, med, sizes):
             ratio = get(arm, s, "latency_median_ratio")
             ax[1].text(x, v, f"{v:.2g}" + (f"\n×{ratio:.2f}" if ratio else ""), ha="center", va="bottom", fontsize=7)
-    ax[1].set_yscale("log")
-    ax[1].yaxis.set_major_formatter(ScalarFormatter())
-    ax[1].yaxis.set_minor_formatter(NullFormatter())
     lo, hi = ax[1].get_ylim()
-    ax[1].set_ylim(lo, hi * 3)
+    ax[1].set_ylim(0, hi * 1.35)
     ax[1].set_xticks(xs, size_labels)
     ax[1].set_ylabel("ms, receipt - header.stamp")
     ax[1].set_title(f"latency, one message per {PERIOD_S * 1e3:.0f} ms (bar median, – p90)", fontsize=10)
