@@ -77,6 +77,19 @@ COLORS = {"rclpy_rclpy": "tab:gray", "ours_rclpy": "tab:blue", "rclpy_ours": "ta
 # --------------------------------------------------------------------------- child scripts
 # Each gets: payload file (npz: data, offsets), paced count, burst count, depth on argv.
 
+
+#: The publishers' common loop: `paced` messages `period` s apart (latency), then a burst (throughput).
+SEND_LOOP = r"""
+for i in range(paced):
+    send(i)
+    time.sleep(period)
+time.sleep(0.3 if paced else 0.0)
+t0 = time.time_ns()
+for i in range(paced, paced + burst):
+    send(i)
+t1 = time.time_ns()
+"""
+
 RCLPY_PUB = r"""
 import sys, time, json
 import numpy as np
@@ -109,15 +122,7 @@ def send(i):
     msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t, 1_000_000_000)
     pub.publish(msg)
 
-for i in range(paced):
-    send(i)
-    time.sleep(period)
-time.sleep(0.3 if paced else 0.0)
-t0 = time.time_ns()
-for i in range(paced, paced + burst):
-    send(i)
-t1 = time.time_ns()
-acked = pub.wait_for_all_acked(rclpy.duration.Duration(seconds=60))
+""" + SEND_LOOP + r"""acked = pub.wait_for_all_acked(rclpy.duration.Duration(seconds=60))
 print(json.dumps({"burst_t0_ns": t0, "burst_send_s": (t1 - t0) / 1e9, "acked": bool(acked)}), flush=True)
 sys.stdin.read()
 node.destroy_node()
@@ -147,15 +152,7 @@ def send(i):
     pk.write_raw_packet("/bench/events", payloads[i % len(payloads)], encoding="evt3", width=w, height=h,
                         stamp_ns=time.time_ns(), seq=i)
 
-for i in range(paced):
-    send(i)
-    time.sleep(period)
-time.sleep(0.3 if paced else 0.0)
-t0 = time.time_ns()
-for i in range(paced, paced + burst):
-    send(i)
-t1 = time.time_ns()
-acked = pub.dds.wait_for_acks(60.0)
+""" + SEND_LOOP + r"""acked = pub.dds.wait_for_acks(60.0)
 print(json.dumps({"burst_t0_ns": t0, "burst_send_s": (t1 - t0) / 1e9, "acked": bool(acked)}), flush=True)
 sys.stdin.read()
 node.shutdown()
