@@ -9,7 +9,7 @@ ROOT = Path(__file__).resolve().parents[1] / "evdnerf_ros"
 #: A module or package may import only what has a lower rank (and itself).
 RANK = {
     "errors": 0, "topics": 0, "__version__": 0,
-    "units": 1, "limits": 1, "atomic": 1, "renderer": 1, "device": 1,
+    "units": 1, "limits": 1, "atomic": 1, "renderer": 1, "device": 1, "share": 1,
     "events": 2, "geometry": 2,
     "io": 3,
     "yamlcheck": 4,
