@@ -19,7 +19,7 @@ def pytest_configure(config):
 
 
 #: Modules whose tests are paced to real time besides the virtual rig's (DDS between processes).
-REALTIME_MODULES = {"test_ros_dds_nodes", "test_ros_graph"}
+REALTIME_MODULES = {"test_ros_dds_nodes", "test_ros_graph", "test_ros2_real"}
 
 
 def pytest_collection_modifyitems(config, items):

@@ -209,3 +209,15 @@ def test_ros_environment():
     assert f"ros_discovery_off_{os.getpid()}" in qos.domain_config({"ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"})
     assert qos.domain_config({"ROS_LOCALHOST_ONLY": "1", "CYCLONEDDS_URI": "file:///x.xml"}).endswith(
         "</CycloneDDS>,file:///x.xml")
+
+
+def test_a_ctrl_c_delivered_twice_is_one_stop_request():
+    """A terminal's Ctrl-C reaches `ros2 launch` and the node, and launch forwards it again: the
+    repeat within REPEATED_SIGINT_S is not a second Ctrl-C; one a while later is."""
+    import time
+
+    from evdnerf_ros.ros.node import REPEATED_SIGINT_S, is_second_interrupt
+
+    assert is_second_interrupt([])
+    assert not is_second_interrupt([time.monotonic()])
+    assert is_second_interrupt([time.monotonic() - REPEATED_SIGINT_S - 0.1])

@@ -3,8 +3,8 @@ an optional rosbag2 sink, logging, and a clean shutdown on SIGINT / SIGTERM.
 
 A subclass lists its :class:`ParameterSpec` in ``PARAMETERS`` (every node also has rclpy's
 ``use_sim_time``: true makes :meth:`Node.now_ns` follow ``/clock``) and runs its loop while
-:meth:`Node.ok`; the first SIGINT / SIGTERM only asks the loop to stop (a second SIGINT
-interrupts at once), and :meth:`Node.shutdown` then closes the bag (everything published
+:meth:`Node.ok`; the first SIGINT / SIGTERM only asks the loop to stop (a second SIGINT, a
+second or more later, interrupts at once), and :meth:`Node.shutdown` then closes the bag (everything published
 so far is in it) and the DDS entities. ``dds=False`` runs the same node without any DDS
 (bag only), as ``evdnerf publish`` does by default.
 """
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import signal
 import threading
+import time
 
 from ..errors import InputError
 from .args import parse_ros_args
@@ -55,6 +56,18 @@ class Publisher:
 #: Declared by every node, as rclpy and rclcpp do.
 USE_SIM_TIME = ParameterSpec("use_sim_time", False, "the node's clock follows /clock (rosgraph_msgs/msg/Clock) "
                              "instead of the system clock; messages keep the stamps their data carries", dynamic=True)
+
+
+#: A SIGINT this soon (s) after the first is the same Ctrl-C delivered twice, not a second one: a
+#: terminal signals its whole foreground process group, and `ros2 launch` forwards the SIGINT it
+#: got to the node as well.
+REPEATED_SIGINT_S = 1.0
+
+
+def is_second_interrupt(first: list[float]) -> bool:
+    """Whether a SIGINT after a stop request (its monotonic time in ``first``, if any) is a new
+    Ctrl-C that asks to stop at once."""
+    return not first or time.monotonic() - first[0] > REPEATED_SIGINT_S
 
 
 class Node:
@@ -197,13 +210,17 @@ class Node:
         return self.ok()
 
     def install_signal_handlers(self) -> None:
-        """SIGINT / SIGTERM ask the loop to stop (a second SIGINT raises KeyboardInterrupt)."""
+        """SIGINT / SIGTERM ask the loop to stop (a later second SIGINT raises KeyboardInterrupt)."""
         if threading.current_thread() is not threading.main_thread():
             return
+        first = []
 
         def handler(signum, _frame):
             if self._stop.is_set() and signum == signal.SIGINT:
-                raise KeyboardInterrupt
+                if is_second_interrupt(first):
+                    raise KeyboardInterrupt
+                return
+            first.append(time.monotonic())
             self.logger.info(f"{signal.Signals(signum).name}: stopping")
             self._stop.set()
 
