@@ -248,7 +248,7 @@ def plot_publisher(ax, result: dict) -> None:
                         ls="--" if bake else "-",
                         label=f"{camera} camera, " + (f"baked {bake}" if bake else "the field itself"))
     steady = result.get("steady", [])
-    def variant(r):        # rows before session 26 have neither render_ahead nor ray_chunk (one chunk, 16384)
+    def variant(r):        # rows without render_ahead or ray_chunk ran one chunk at a time, 16384 rays
         return (r["bake"], r["path"], r.get("prefetch_levels", 0), r.get("render_ahead", 0.0), r.get("ray_chunk", 16384))
 
     for bake, camera, levels, ahead, ray_chunk in sorted({variant(r) for r in steady}):

@@ -273,7 +273,7 @@ def bench_published(work: Path, quick: bool, threads: int, levers=None, span_s: 
     return out
 
 
-#: ``render_ahead`` values of the render-ahead part (s; 0: one chunk at a time, as before session 26)
+#: ``render_ahead`` values of the render-ahead part (s; 0: one chunk at a time)
 AHEAD_S = (0.0, 0.05, 0.1, 0.2)
 
 

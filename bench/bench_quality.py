@@ -4,7 +4,7 @@ Each lever is one change of the training config against the same baseline, train
 same wall-clock budget on the same simulated Jet-Down training set, each run in its own
 process with the same torch thread count.  Every run logs, every ``eval_every`` iterations,
 validation events-PSNR at 32 windows (the paper's protocol windows) on ``eval_views``
-validation views spread over the ring (``spread_views``; the first ones until session 25), its all-zero floor and the true scene's score, hence the
+validation views spread over the ring (``spread_views``), its all-zero floor and the true scene's score, hence the
 fraction of the floor-to-truth margin closed (``evdnerf_ros.eval.truth.margin_closed``).  At
 the end each run is scored at 32 windows and at 4x / 8x finer windows (128, 256).
 
