@@ -24,15 +24,25 @@ pytestmark = pytest.mark.skipif(real_ros2.missing() is not None, reason=str(real
 EVENT_PACKET = "event_camera_msgs/msg/EventPacket"
 
 
+#: The ROS_DOMAIN_IDs the tests used: `ros2 param` / `service` start a ros2 daemon in each.
+_DOMAINS: set[str] = set()
+
+
 @pytest.fixture(scope="module")
 def installs(tmp_path_factory):
-    """Both colcon installs of the package: {'normal': Overlay, 'symlink': Overlay}."""
+    """Both colcon installs of the package: {'normal': Overlay, 'symlink': Overlay}; the ros2
+    daemons the tests started are stopped at the end."""
     root = tmp_path_factory.mktemp("ros2_ws")
-    return {name: real_ros2.overlay(root / name, symlink=name == "symlink") for name in ("normal", "symlink")}
+    built = {name: real_ros2.overlay(root / name, symlink=name == "symlink") for name in ("normal", "symlink")}
+    yield built
+    for domain in sorted(_DOMAINS):
+        built["normal"].run("ros2 daemon stop", env={"ROS_LOCALHOST_ONLY": "1", "ROS_DOMAIN_ID": domain})
 
 
 def _env() -> dict:
-    return {"ROS_LOCALHOST_ONLY": "1", "ROS_DOMAIN_ID": str(ros_domain())}
+    domain = str(ros_domain())
+    _DOMAINS.add(domain)
+    return {"ROS_LOCALHOST_ONLY": "1", "ROS_DOMAIN_ID": domain}
 
 
 def _wait_for(ws, env, cmd: str, wanted: str, timeout=60.0) -> str:
