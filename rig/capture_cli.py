@@ -38,7 +38,7 @@ import yaml
 
 from evdnerf_ros.errors import InputError
 from evdnerf_ros.options import add_options, check_value, option, option_fields, options_from_args
-from evdnerf_ros.ros.node import Node, is_second_interrupt
+from evdnerf_ros.ros.node import Node, stop_signal_handler
 
 from .capture import CaptureInterrupted, CaptureOptions, capture_session
 
@@ -443,17 +443,7 @@ def _run_real(rig: RigChoice, opts: CaptureOptions, face: NodeFace = NodeFace())
     stop = threading.Event()
     got: list[int] = []
 
-    first: list[float] = []
-
-    def on_signal(signum, _frame):
-        if stop.is_set() and signum == signal.SIGINT:
-            if is_second_interrupt(first):
-                raise KeyboardInterrupt        # a second Ctrl-C: at once
-            return
-        first.append(time.monotonic())
-        got.append(signum)
-        stop.set()
-
+    on_signal = stop_signal_handler(stop, got.append)
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     node = None
     try:

@@ -70,6 +70,23 @@ def is_second_interrupt(first: list[float]) -> bool:
     return not first or time.monotonic() - first[0] > REPEATED_SIGINT_S
 
 
+def stop_signal_handler(stop: threading.Event, on_stop=lambda signum: None):
+    """A SIGINT / SIGTERM handler that sets ``stop`` (after ``on_stop(signum)``); a second Ctrl-C
+    (:func:`is_second_interrupt`) raises KeyboardInterrupt, the same one delivered twice is ignored."""
+    first: list[float] = []
+
+    def handler(signum, _frame):
+        if stop.is_set() and signum == signal.SIGINT:
+            if is_second_interrupt(first):
+                raise KeyboardInterrupt
+            return
+        first.append(time.monotonic())
+        on_stop(signum)
+        stop.set()
+
+    return handler
+
+
 class Node:
     #: default node name (``-r __node:=`` overrides it)
     NAME = "node"
@@ -213,16 +230,8 @@ class Node:
         """SIGINT / SIGTERM ask the loop to stop (a later second SIGINT raises KeyboardInterrupt)."""
         if threading.current_thread() is not threading.main_thread():
             return
-        first = []
-
-        def handler(signum, _frame):
-            if self._stop.is_set() and signum == signal.SIGINT:
-                if is_second_interrupt(first):
-                    raise KeyboardInterrupt
-                return
-            first.append(time.monotonic())
-            self.logger.info(f"{signal.Signals(signum).name}: stopping")
-            self._stop.set()
+        handler = stop_signal_handler(
+            self._stop, lambda signum: self.logger.info(f"{signal.Signals(signum).name}: stopping"))
 
         for sig in (signal.SIGINT, signal.SIGTERM):
             self._old_handlers[sig] = signal.signal(sig, handler)
