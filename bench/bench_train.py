@@ -10,7 +10,7 @@ Runs, one after another on this machine, each in its own process (peak RSS measu
 - ``planes-no-region``: the leave-out switch off (no dynamic region: every ray and sample
   evaluated at both window ends);
 - ``planes-frames``: the blurred-frames baseline (frame supervision, no events; the paper
-  uses the D-NeRF backbone for it, which is ~60x slower per step here: see README);
+  uses the D-NeRF backbone for it, which is ~60x slower per step here: see docs/training.md);
 - ``dnerf``: the paper's backbone (8x256 MLPs, lr 5e-4), with the dynamic region, for 60
   minutes (the issue's comparison: does ``planes`` reach dnerf's 60-minute best in 2 minutes?).
 Every run logs validation events-PSNR (32 windows, the paper's protocol windows, the first

@@ -65,7 +65,7 @@ PUBLISH_CHUNK_S = 0.1
 
 def _backbone(train_h5, log) -> str:
     """``hinge`` where the training set records the rig's joint (the fork's servo: validation
-    margin 20 % against -13 % for ``planes`` in the same 2 minutes, README), else ``planes``."""
+    margin 20 % against -13 % for ``planes`` in the same 2 minutes, docs/results.md), else ``planes``."""
     from .io.trainingset import TrainingSet
     from .train.joint import recorded_joint
 
@@ -307,7 +307,7 @@ def _verdict(split: str, scores: dict) -> str:
              + (f" and {truth:.2f} for the true scene" if truth is not None else ""))
     if field <= floor:
         return (f"{split}: the field's events are further from the recording than no events at all "
-                f"({where}, pooled over the windows): the README's \"Dynamic radiance fields\" section says why "
+                f"({where}, pooled over the windows): docs/training.md says why "
                 "and what was tried")
     return (f"{split}: the field's events are closer to the recording than no events ({where}, pooled"
             + (f"; {100 * margin:.0f} % of the margin to the true scene closed)" if margin is not None else ")"))

@@ -4,7 +4,7 @@
     ros2 launch rig capture.launch.py output:=/tmp/session virtual:=true
 
 Launch arguments override the YAML's output, virtual and views; every other setting is in the
-YAML (README: "Capturing a session"). Live events appear on /capture/events
+YAML (docs/capture.md; every parameter: docs/reference/node-capture.md). Live events appear on /capture/events
 (event_camera_msgs/msg/EventPacket, best effort, the camera's own encoding).
 """
 

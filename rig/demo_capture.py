@@ -49,7 +49,7 @@ SCENE_SIZE = (48, 36)
 RATE_HZ = 125.0
 #: 25 turntable views over 0..180 deg (7.5 deg apart), every third for validation: 17 training views
 #: + 8 validation views, each 7.5 deg from its nearest training view. Measured with 2 min of training
-#: (margin pooled at the trained windows; README "Quality levers"): the demo closed 20 % with this
+#: (margin pooled at the trained windows; docs/results.md): the demo closed 20 % with this
 #: layout, 13 % with 13 views (9 + 4) and 2-7 % with 7 (5 + 2); on one capture with the same
 #: validation views, fewer training views closed less (bench_quality.py --rig). With 6 views the
 #: last validation view lay 36 deg beyond the last training view: an extrapolation (-32 %).

@@ -1,7 +1,7 @@
 """Fault injection: every command, run as the user runs it (`python -m evdnerf_ros ...` in a
 subprocess), against bad input, absurd flags, existing outputs, a full disk and signals.
 
-The promise each case checks (README, "Reliability"):
+The promise each case checks (docs/reliability.md):
 - exit status 2 and exactly one line `evdnerf: error: ...` on stderr, no traceback;
 - the line names the culprit (the flag, the file, the key);
 - nothing that existed before was changed or deleted, and nothing half-written was left
@@ -93,7 +93,7 @@ class Case:
     argv: list                       # {S} {E} {T} {R} {tmp} are filled in
     culprit: str                     # must appear in the error line
     setup: Callable | None = None    # setup(tmp, ws) makes the bad input / existing output
-    kind: str = "flag"               # flag | existing | corrupt | typed (the README table groups by it)
+    kind: str = "flag"               # flag | existing | corrupt | typed (the docs/reliability.md table groups by it)
     extra: dict = field(default_factory=dict)
 
 

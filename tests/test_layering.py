@@ -1,4 +1,4 @@
-"""The package layering of evdnerf_ros (README, "Layout"): imports only go down the ranks below,
+"""The package layering of evdnerf_ros (docs/architecture.md, "Layout"): imports only go down the ranks below,
 so there is no import circle between packages, and only the simulator's users import sim/."""
 
 import ast

@@ -116,7 +116,7 @@ def test_training_beats_the_zero_floor_on_validation_views(tiny_set, tmp_path):
 def test_hinge_training_beats_the_zero_floor_on_validation_views(tiny_set, tmp_path):
     """The hinge field (the fork's joint from the set's scene) on the same views: above the floor
     by a margin in 300 iterations (~30 s; planes closes more of the margin on this 32x32 set,
-    the hinge field more on the demo's 96x72 one: README)."""
+    the hinge field more on the demo's 96x72 one: docs/results.md)."""
     from evdnerf_ros.eval.evaluate import validation_eval
     from evdnerf_ros.train.trainer import run_train
 

@@ -1,6 +1,6 @@
 """Board images from events: what a frame camera would have seen, made from an event stream.
 
-Two recording styles (README, "Calibration"):
+Two recording styles (docs/calibration.md):
 
 * **blink** (the Prophesee SDK's blinking-pattern calibration): the board blinks on a screen
   (or a lamp behind a print) while camera and board hold still, then one of them is moved to

@@ -57,7 +57,7 @@ def register(sub) -> None:
                                    "generate a continuous event stream and write it (EventPacket evt3 + "
                                    "CameraInfo) into a rosbag2; --dds also publishes on Cyclone DDS with ROS 2 "
                                    "naming (ROS_DOMAIN_ID, ROS_LOCALHOST_ONLY). Every node parameter can be set "
-                                   "with -p name=value or --params-file (see README).")
+                                   "with -p name=value or --params-file (see docs/reference/node-event_publisher.md).")
     p.add_argument("-o", "--output", help="rosbag2 to write (must not exist)")
     p.add_argument("--dds", action="store_true", help="also publish over DDS")
     p.add_argument("--scene", help="scene preset or YAML (default fork)")

@@ -85,7 +85,7 @@ def read_h5(path):
     with f, h5_reading(path):
         if "events" not in f or not all(k in f["events"] for k in ("t", "x", "y", "p")):
             raise InputError(f"{path}: no events/{{t,x,y,p}} datasets; this reader expects the "
-                             "layout written by `evdnerf convert-events` (see README)")
+                             "layout written by `evdnerf convert-events` (see docs/formats.md)")
         width = h5_number(f.attrs, "width", path, low=1, high=65535, integer=True)
         height = h5_number(f.attrs, "height", path, low=1, high=65535, integer=True)
         cols = _columns(f, "events", ("t", "x", "y", "p"), path)

@@ -35,7 +35,7 @@ ADDED_KEYS = {"background_cells": 0, "span_fraction": 0.0, "empty_weight": 0.0, 
 #: ``rigid``: its learned poses settle only as the learning rate decays, and its part is sampled
 #: finer (Jet-Down 128x128, 5 min: margin closed 45 % with the plain defaults, 61 % with the
 #: decay, 64 % with both); ``hinge`` settles with the decay too (the demo's fork set: moving
-#: camera -20 % against -40 %); ``planes`` is better without it (README, "Quality levers").
+#: camera -20 % against -40 %); ``planes`` is better without it (docs/results.md).
 #: ``hinge`` keeps its part sparse (``part_empty_weight``; the demo's fork set: moving camera
 #: -0.1 % against -27 %, validation 18.6 against 16.4 %; 3 and more empty the part within the
 #: demo's 2 minutes).

@@ -58,7 +58,7 @@ def part_box(joint: dict, region_mask, margin_cells: float = 1.0) -> list | None
     same planes resolve the part's thickness that much finer. Stray specks of the region
     (``main_components``) are left out first: a cell in a corner of the box would stretch it.
     (The box of the region turned back at each angle, intersected over the angles, is tighter
-    across the axis too; measured, it broke the side-on views' fit: README, "The part's own box".)"""
+    across the axis too; measured, it broke the side-on views' fit: docs/training.md, "The part's own box".)"""
     mask = np.asarray(region_mask, bool)
     if mask.ndim != 3:
         raise ValueError(f"part box: the dynamic region must be a 3D grid, got shape {mask.shape}")
@@ -88,7 +88,7 @@ def part_box_pays(train_set, box, joint: dict, finest: int) -> bool:
     (distance over focal length, the median over the static training views) smaller than one
     of those cells. Where it is not, finer cells buy nothing (measured: the virtual rig's 48x36
     set, 6.4 cm pixels against 4.4 cm cells, closed 1-3 points less with the box; the demo's
-    96x72 set, 3.2 cm pixels, more on every seed: README, "The part's own box")."""
+    96x72 set, 3.2 cm pixels, more on every seed: docs/training.md, "The part's own box")."""
     lo, hi = (np.asarray(b, np.float64) for b in box)
     half = (hi - lo) / 2.0
     pivot = lo + (np.asarray(joint["pivot"], np.float64) + 1.0) * half
