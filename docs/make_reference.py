@@ -43,14 +43,20 @@ def command_page(name: str, parser: argparse.ArgumentParser) -> str:
     if parser.description:
         lines.append(" ".join(parser.description.split()) + "\n\n")
     lines.append(f"```\n{parser.format_usage().strip()}\n```\n\n")
-    lines.append("| argument | type | default | choices | help |\n|---|---|---|---|---|\n")
+    lines.append("| argument | type | default | range or choices | help |\n|---|---|---|---|---|\n")
     for action in parser._actions:
         if isinstance(action, argparse._HelpAction):
             continue
         flags = ", ".join(f"`{o}`" for o in action.option_strings) or f"`{action.dest}` (positional)"
-        choices = ", ".join(map(str, action.choices)) if action.choices else ""
-        help_text = (action.help or "").replace("%(default)s", str(action.default))
-        lines.append(f"| {flags} | {_type_name(action)} | {_cell(_default(action))} | {_cell(choices)} | "
+        if hasattr(action, "option"):        # a field of an options dataclass (evdnerf_ros.options)
+            help_text, rng, default = action.option
+            rng = rng.removeprefix("in ")
+            default = (f"`{default}`" if " " not in default else default) if default else ""
+        else:
+            rng = ", ".join(map(str, action.choices)) if action.choices else ""
+            help_text = (action.help or "").replace("%(default)s", str(action.default))
+            default = _default(action)
+        lines.append(f"| {flags} | {_type_name(action)} | {_cell(default)} | {_cell(rng)} | "
                      f"{_cell(help_text)} |\n")
     return "".join(lines)
 
@@ -70,6 +76,44 @@ def node_page(executable: str, node_name: str, doc: str, specs) -> str:
         when = "start-up (read-only)" if spec.read_only else ("live (dynamic)" if spec.dynamic else "start-up")
         lines.append(f"| `{spec.name}` | {spec.type_name()} | `{spec.default!r}` | {_cell(rng)} | {when} | "
                      f"{_cell(spec.description)} |\n")
+    return "".join(lines)
+
+
+def train_config_page() -> str:
+    """The training config's keys (`evdnerf train --config`, `TrainConfig`): each field's type,
+    default and range (`train/ranges.py`) and its attribute docstring, read from the source."""
+    import ast
+    import dataclasses
+    import inspect
+
+    from evdnerf_ros.train import config, ranges
+
+    tree = ast.parse(inspect.getsource(config.TrainConfig))
+    body = tree.body[0].body
+    docs = {}
+    for node, after in zip(body, body[1:] + [None]):
+        if isinstance(node, ast.AnnAssign) and isinstance(after, ast.Expr) \
+                and isinstance(getattr(after, "value", None), ast.Constant) and isinstance(after.value.value, str):
+            docs[node.target.id] = " ".join(after.value.value.split()).replace("``", "`")
+    lines = [HEADER, "# Training config (`evdnerf train --config FILE`, `TrainConfig`)\n\n",
+             "Keys of the YAML file `evdnerf train --config` reads (and of `config.yaml` in a run folder); "
+             "every value is checked against its range before anything is allocated. "
+             "`null` where allowed means the backbone's default.\n\n",
+             "| key | type | default | range | description |\n|---|---|---|---|---|\n"]
+    for f in dataclasses.fields(config.TrainConfig):
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        if f.name in ranges.NUMBERS:
+            low, high, kind, low_open = ranges.NUMBERS[f.name]
+            rng = f"{'(' if low_open else '['}{ranges._num(low)}, {ranges._num(high)}]"
+            rng += " or null" if f.name in ranges.NULLABLE else ""
+        elif f.name in ranges.BOOLS:
+            rng = "true, false"
+        else:
+            rng = ""
+        kind = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+        lines.append(f"| `{f.name}` | {_cell(kind)} | `{default!r}` | {_cell(rng)} | {_cell(docs.get(f.name, ''))} |\n")
+    lines.append("\nThe other keys' rules and each backbone's `field` sizes:\n\n```\n"
+                 + ranges.describe_ranges() + "\n```\n")
     return "".join(lines)
 
 
@@ -93,6 +137,7 @@ def pages() -> dict[str, str]:
         "capture", capture_cli.CaptureNode.NAME,
         "Records one rosbag2 per viewpoint on the servo rig or the virtual rig (docs/capture.md).",
         list(capture_cli.CaptureNode.PARAMETERS) + [USE_SIM_TIME])
+    out["train-config.md"] = train_config_page()
     index = [HEADER, "# Reference\n\nOne page per command and per node, generated from the code.\n\n"]
     index += [f"- [{name.removesuffix('.md')}]({name})\n" for name in sorted(out)]
     out["README.md"] = "".join(index)

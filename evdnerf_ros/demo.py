@@ -308,7 +308,7 @@ def _verdict(split: str, scores: dict) -> str:
     if field <= floor:
         return (f"{split}: the field's events are further from the recording than no events at all "
                 f"({where}, pooled over the windows): docs/training.md says why "
-                "and what was tried")
+                "and docs/results.md what each lever does")
     return (f"{split}: the field's events are closer to the recording than no events ({where}, pooled"
             + (f"; {100 * margin:.0f} % of the margin to the true scene closed)" if margin is not None else ")"))
 

@@ -189,18 +189,22 @@ def add_options(parser: argparse.ArgumentParser, cls, *, exclude=(), config: boo
         if kind is bool and spec.nargs is None:
             on = not _default(f)
             name = flag if on else "--no-" + flag.removeprefix("--")
-            parser.add_argument(name, dest=f.name, action="store_true" if on else "store_false",
-                                default=_UNSET, help=spec.help)
+            action = parser.add_argument(name, dest=f.name, action="store_true" if on else "store_false",
+                                         default=_UNSET, help=spec.help)
+            action.option = (spec.help, "", "")
             continue
         text = spec.help
         rng = _range_text(f, spec)
         extra = ", ".join(x for x in (rng, f"default {_show_default(f, spec)}") if x)
         # several values: checked together by options_from_args, so the message names which one
         typ = str if spec.nargs is not None else _argparse_type(f, spec, flag)
-        parser.add_argument(flag, dest=f.name, type=typ, default=_UNSET,
-                            nargs=spec.nargs,
-                            metavar=spec.metavar or _choices_metavar(spec) or flag.removeprefix("--").upper(),
-                            help=f"{text} ({extra})".replace("%", "%%"))
+        action = parser.add_argument(flag, dest=f.name, type=typ, default=_UNSET,
+                                     nargs=spec.nargs,
+                                     metavar=spec.metavar or _choices_metavar(spec) or flag.removeprefix("--").upper(),
+                                     help=f"{text} ({extra})".replace("%", "%%"))
+        # (help, range or choices, default) apart, for the generated reference (docs/make_reference.py)
+        action.option = (text, rng or (", ".join(map(str, spec.choices)) if spec.choices else ""),
+                         _show_default(f, spec))
 
 
 def _choices_metavar(spec: OptionSpec):

@@ -20,8 +20,8 @@ synthetic scene renderer and a trained radiance field both plug in. Two modes:
 Why a grid, and why a motion guard (a simulated fork lost all its events with a 1 s max
 step, and 4-8 % at 100-500 ms):
 
-* The finest step used to be "whatever max_step / 2**k first falls below 2 * min_step", so
-  it moved with max_step, and with it which brief features were caught (a tine's top face,
+* A finest step of "whatever max_step / 2**k first falls below 2 * min_step" would move
+  with max_step, and with it which brief features are caught (a tine's top face,
   seen edge-on, covers a pixel for 0.2 ms). On the grid every max_step refines to the same frames:
   a coarser max_step can only leave out grid points where the midpoint test vouches for
   linearity, never move them.
