@@ -9,6 +9,7 @@ what it would write (tests/test_docs_generated.py runs it).
 from __future__ import annotations
 
 import ast
+import functools
 import json
 import subprocess
 import sys
@@ -38,6 +39,7 @@ def first_line(script: Path) -> str:
     return " ".join(doc.split("\n\n")[0].split())
 
 
+@functools.cache
 def commit_date(commit: str | None) -> str:
     if not commit:
         return "unknown"
@@ -78,9 +80,8 @@ def section(path: Path, commands: dict) -> str:
     summary = data.get("summary")
     figures = [(k, v) for k, v in flat(summary)] if summary is not None else []
     if figures:
-        peer = [(k, v) for k, v in figures if "peer" in k.lower() or "ratio" in k.lower() or "speedup" in k.lower()]
-        ours = [(k, v) for k, v in figures if (k, v) not in peer]
-        shown = (peer + ours)[:MAX_FIGURES]
+        is_peer = [any(w in k.lower() for w in ("peer", "ratio", "speedup")) for k, _ in figures]
+        shown = ([f for f, p in zip(figures, is_peer) if p] + [f for f, p in zip(figures, is_peer) if not p])[:MAX_FIGURES]
         lines.append("| figure | value |\n|---|---|\n")
         lines += [f"| {k} | {_figure(v)} |\n" for k, v in shown]
         if len(figures) > len(shown):
@@ -104,7 +105,7 @@ def page() -> str:
             "but `bench_leaveout.py`) is a smaller smoke run. The machine is a shared 2-core VM: read the "
             "ratios measured in one run against a peer, not absolute numbers.\n\n")
     paths = sorted(RESULTS.glob("*.json"))
-    index = "".join(f"- [`{p.stem}`](#{p.stem.replace('_', '_')}) — {script_for(p.stem).name}\n" for p in paths)
+    index = "".join(f"- [`{p.stem}`](#{p.stem}) — {script_for(p.stem).name}\n" for p in paths)
     return head + index + "\n" + "".join(section(p, commands) for p in paths)
 
 
