@@ -190,7 +190,8 @@ def test_rclpy_follows_our_clock_and_our_bag_replays_with_ros2_bag(installs, tmp
     ws, env = installs["normal"], _env()
     ours = tmp_path / "ours_bag"
     proc = _start(ws, ["ros2", "run", "rig", "event_publisher", "--ros-args", "-p", "scene:=fork",
-                       "-p", "realtime_factor:=0.5", "-p", "duration:=6.0", "-p", f"bag:={ours}"],
+                       "-p", "realtime_factor:=0.5", "-p", "duration:=6.0", "-p", "camera.width:=64",
+                       "-p", "camera.height:=48", "-p", f"bag:={ours}"],
                   env, tmp_path / "publisher.log")
     recorded = tmp_path / "recorded"
     rec = _start(ws, ["ros2", "bag", "record", "-o", str(recorded), "/event_publisher/events"],
@@ -214,7 +215,7 @@ def test_rclpy_follows_our_clock_and_our_bag_replays_with_ros2_bag(installs, tmp
         seen = json.loads(got.stdout.strip().splitlines()[-1])
         # the trajectory's time, not the wall clock's: a few seconds from the scene's start, rising
         assert len(seen) >= 5 and seen == sorted(seen) and seen[-1] < 60 * 10**9, seen
-        rc, out = _finish(proc, 120)
+        rc, out = _finish(proc, 300)
         assert rc == 0, out[-3000:]
     finally:
         for p in (proc, rec):
