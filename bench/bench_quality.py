@@ -28,9 +28,10 @@ and field (``hinge``), 2 minutes per run, scored on every validation view (poole
 verdict). A lever may keep fewer training views (``"_training_views": N``, spread evenly along
 the ring): the same capture and validation views with fewer training views.
 
-Usage: python bench/bench_quality.py [--full | --demo [--sweeps N] | --rig TRAIN.h5] [--levers a,b,...] [--seconds S]
+Usage: python bench/bench_quality.py [--full | --default-path | --demo [--sweeps N] | --rig TRAIN.h5] [--levers a,b,...] [--seconds S]
        [--parallel N] [--replot]
-       -> bench/results/quality_proxy.{json,png}, quality.{json,png}, quality_demo.{json,png},
+       -> bench/results/quality_proxy.{json,png}, quality.{json,png}, quality_default_path.{json,png},
+          quality_demo.{json,png},
           quality_demo_sweeps.{json,png} (--demo --sweeps N) or quality_rig.{json,png}
 """
 
@@ -48,12 +49,14 @@ from pathlib import Path
 
 from _common import arg_parser, load_average, machine, pyplot, read_results, save_figure, write_results
 
-#: The baseline every lever is compared with: the training defaults (eval cadence aside).
-BASE = {"eval_every": 100, "checkpoint_every": 0, "log_every": 100}
+#: The baseline every lever is compared with: the training defaults with the ``planes`` field (whose
+#: levers most rows are; the default backbone, ``auto``, is a lever of its own), eval cadence aside.
+BASE = {"backbone": "planes", "eval_every": 100, "checkpoint_every": 0, "log_every": 100}
 
 #: lever name -> config changes against BASE.
 LEVERS = {
     "baseline": {},
+    "auto": {"backbone": "auto"},
     "before spans + background map + empty prior": {"span_fraction": 0.0, "background_cells": 0,
                                                       "background": 0.0, "empty_weight": 0.0},
     "no empty prior": {"empty_weight": 0.0},
@@ -122,6 +125,10 @@ RIG_LEVERS = ["rig-all-training-views", "rig-9-training-views", "rig-5-training-
 #: --demo's levers by default (the demo's config already sets windows and 32 samples).
 DEMO_LEVERS = ["baseline", "lr-0.01", "lr-0.005", "spans-0.8", "samples-48", "time-res-32", "event-rays-0.8"]
 
+#: --default-path: what `evdnerf train` does with its defaults (auto against planes), 2 threads each.
+DEFAULT_PATH = {"views": 18, "val_views": 4, "resolution": 64, "seconds": 180.0, "threads": 2,
+                "eval_views": 4, "final_views": {1: 4, 4: 2, 8: 2}}
+DEFAULT_PATH_LEVERS = ["auto", "baseline"]
 PROXY = {"views": 12, "val_views": 4, "resolution": 64, "seconds": 90.0, "threads": 1,
          "eval_views": 4, "final_views": {1: 4, 4: 2, 8: 2}}
 FULL = {"views": 18, "val_views": 18, "resolution": 128, "seconds": 300.0, "threads": 1,
@@ -348,6 +355,8 @@ def main(argv=None):
     ap = arg_parser(__doc__, quick="the proxy levers for 30 s each")
     ap.add_argument("--full", action="store_true", help="Jet-Down 128x128, 18+18 views, 5 minutes")
     ap.add_argument("--demo", action="store_true", help="the demo's fork set and training config, 2 minutes")
+    ap.add_argument("--default-path", action="store_true",
+                    help="Jet-Down 64x64, 18+4 views, 3 minutes, 2 threads: backbone auto against planes")
     ap.add_argument("--sweeps", type=int, default=0,
                     help="--demo: training views whose camera sweeps the ring (levers with and without them)")
     ap.add_argument("--views", type=int, default=None,
@@ -370,20 +379,21 @@ def main(argv=None):
         args.threads = int(args.threads)
         return child(args)
     setting = (rig_setting(args.rig) if args.rig else demo_setting(args.sweeps, args.views) if args.demo
-               else dict(FULL if args.full else PROXY))
+               else dict(FULL if args.full else DEFAULT_PATH if args.default_path else PROXY))
     if args.quick:
         setting["seconds"] = 30.0
     if args.seconds:
         setting["seconds"] = args.seconds
     stem = args.stem or ("quality_rig" if args.rig else "quality_demo_sweeps" if args.demo and args.sweeps
                          else "quality_demo" if args.demo
-                         else "quality" if args.full else "quality_proxy")
+                         else "quality" if args.full else "quality_default_path" if args.default_path
+                         else "quality_proxy")
     if args.replot:
         return plot(read_results(args.out, stem), args.out / f"{stem}.png")
     levers = {**LEVERS, **json.loads(args.extra)}
     names = (args.levers.split(",") if args.levers else RIG_LEVERS if args.rig else SWEEP_LEVERS
              if args.demo and args.sweeps else DEMO_LEVERS if args.demo
-             else list(LEVERS))
+             else DEFAULT_PATH_LEVERS if args.default_path else list(LEVERS))
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     train_set = build_set(work, setting)

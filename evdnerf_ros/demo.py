@@ -63,20 +63,6 @@ PUBLISH_BAKE = 64
 PUBLISH_CHUNK_S = 0.1
 
 
-def _backbone(train_h5, log) -> str:
-    """``hinge`` where the training set records the rig's joint (the fork's servo: validation
-    margin 20 % against -13 % for ``planes`` in the same 2 minutes, docs/results.md), else ``planes``."""
-    from .io.trainingset import TrainingSet
-    from .train.joint import recorded_joint
-
-    with TrainingSet(train_h5) as ts:
-        try:
-            recorded_joint(ts)
-        except InputError as exc:
-            log(f"no joint for the hinge field ({exc}): the planes field learns the motion too")
-            return "planes"
-    return "hinge"
-
 # (file name, encoding, carries trigger events): every container the demo round-trips through.
 CONVERSIONS = [
     ("events_evt3.raw", "evt3", True),
@@ -246,12 +232,11 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: Se
                                "dl_abs_sum_view0": float(abs(d_l).sum())}
 
     n_train = sum(v["split"] == "train" and not v.get("moving_arc_deg") for v in views)
-    backbone = _backbone(out / "train.h5", log)
-    summary["backbone"] = backbone
-    log(f"training the {backbone} field for {train_minutes:g} min"
+    log(f"training the field for {train_minutes:g} min"
         + (f" or {train_iterations} iterations" if train_iterations else "") + f" on the events of {n_train} views")
-    trained = run_train(out / "train.h5", out / "run", config=dict(TRAIN_CONFIG, backbone=backbone),
+    trained = run_train(out / "train.h5", out / "run", config=TRAIN_CONFIG,
                         minutes=train_minutes, iters=train_iterations, eval_fn=validation_eval(), log=log)
+    summary["backbone"] = {"chosen": trained["backbone"], "why": trained["backbone_reason"]}
     result = run_eval(out / "run", out / "train.h5", factors=(1, 4),
                       image_path=out / "run" / "eval_events.png", log=log)
     run_report([out / "run"], out / "report")

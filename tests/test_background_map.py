@@ -55,7 +55,7 @@ def test_bad_sizes_are_refused():
 def test_a_run_saved_before_the_map_and_spans_loads_as_it_was():
     """A checkpoint's config written before background_cells, span_fraction and empty_weight existed (with
     the old constant background 0) keeps that behaviour; a new config gets today's defaults."""
-    old = {k: v for k, v in TrainConfig().to_dict().items()
+    old = {k: v for k, v in TrainConfig(backbone="planes").to_dict().items()
            if k not in ("background_cells", "span_fraction", "empty_weight")}
     old["background"] = 0.0
     cfg = TrainConfig.from_dict(old, saved=True)
@@ -95,7 +95,7 @@ def test_config_builds_it_and_a_checkpoint_keeps_it(tmp_path):
     from evdnerf_ros.train.ranges import field_parameters
     from evdnerf_ros.train.run import TrainedRun
 
-    cfg = TrainConfig(background=0.25, background_cells=64, n_samples=8,
+    cfg = TrainConfig(backbone="planes", background=0.25, background_cells=64, n_samples=8,
                       field=dict(resolutions=[8], time_resolution=4, features=4, hidden=8))
     torch.manual_seed(2)
     field = field_from_config(cfg)
@@ -110,7 +110,7 @@ def test_config_builds_it_and_a_checkpoint_keeps_it(tmp_path):
     d = _dirs(np.linspace(-170, 170, 9), np.linspace(-60, 60, 9))
     np.testing.assert_array_equal(run.field.background_map(d).detach().numpy(),
                                   field.background_map(d).detach().numpy())
-    plain = field_from_config(TrainConfig(background_cells=0))
+    plain = field_from_config(TrainConfig(backbone="planes", background_cells=0))
     assert getattr(plain, "background_map", None) is None
 
 

@@ -44,7 +44,7 @@ def _tiny_run(tmp_path):
     from evdnerf_ros.train.checkpoint import save_checkpoint
     from evdnerf_ros.train.config import TrainConfig, field_from_config
 
-    cfg = TrainConfig()
+    cfg = TrainConfig(backbone="planes")
     torch.manual_seed(3)
     dyn = torch.zeros((8, 8, 8), dtype=torch.bool)
     dyn[3:5, 3:5, 2:6] = True
@@ -103,7 +103,7 @@ def test_cuda_absent_is_an_error_in_eval_and_publish(tmp_path, no_cuda, capsys):
 
 
 # ---------------------------------------------------------------------- training
-SMALL = {"rays": 64, "n_samples": 8, "occupancy_resolution": 8, "occupancy_warmup": 2, "occupancy_every": 2,
+SMALL = {"backbone": "planes", "rays": 64, "n_samples": 8, "occupancy_resolution": 8, "occupancy_warmup": 2, "occupancy_every": 2,
          "eval_every": 0, "checkpoint_every": 0, "log_every": 0,
          "field": {"resolutions": [8, 16], "features": 4, "time_resolution": 8}}
 

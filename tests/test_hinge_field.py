@@ -228,7 +228,7 @@ def test_the_part_prior_is_the_parts_mean_opacity_and_thins_only_the_part(tiny_t
                 dens[w] = float(tr.field.part_density(x, t).mean())
     assert dens[1.0] < 0.5 * dens[0.0], dens
     assert TrainConfig(backbone="hinge").part_empty_weight == 1.0
-    assert TrainConfig().part_empty_weight == 0.0 and TrainConfig(backbone="rigid").part_empty_weight == 0.0
+    assert TrainConfig(backbone="planes").part_empty_weight == 0.0 and TrainConfig(backbone="rigid").part_empty_weight == 0.0
     assert TrainConfig.from_dict({"backbone": "hinge"}, saved=True).part_empty_weight == 0.0
     with pytest.raises(InputError, match="part_empty_weight.*planes field has no part"):
         TrainConfig(backbone="planes", part_empty_weight=0.5)

@@ -23,7 +23,7 @@ BOX = np.array([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
 
 
 def small_config(**kw):
-    base = dict(n_samples=16, rays=128, windows=[8], window_switch=[], field=SMALL_FIELD, lr=2e-2,
+    base = dict(backbone="planes", n_samples=16, rays=128, windows=[8], window_switch=[], field=SMALL_FIELD, lr=2e-2,
                 lr_warmup_iters=10, log_every=0, eval_every=0, time_curriculum=0, checkpoint_every=0)
     base.update(kw)
     return TrainConfig(**base)

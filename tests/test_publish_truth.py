@@ -14,7 +14,7 @@ def tiny_run(tiny_train_h5, tmp_path_factory):
     from evdnerf_ros.train.trainer import run_train
 
     run = tmp_path_factory.mktemp("pub_truth") / "run"
-    run_train(tiny_train_h5, run, iters=30, overwrite=True, log=lambda *_: None)
+    run_train(tiny_train_h5, run, config={"backbone": "planes"}, iters=30, overwrite=True, log=lambda *_: None)
     return run
 
 

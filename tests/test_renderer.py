@@ -24,7 +24,7 @@ def _field_run(tmp_path):
     from evdnerf_ros.train.checkpoint import save_checkpoint
     from evdnerf_ros.train.config import TrainConfig, field_from_config
 
-    cfg = TrainConfig(n_samples=16, field=dict(resolutions=[8], time_resolution=4, features=4, hidden=8),
+    cfg = TrainConfig(backbone="planes", n_samples=16, field=dict(resolutions=[8], time_resolution=4, features=4, hidden=8),
                       background_cells=0, background=0.0)
     torch.manual_seed(3)
     field = field_from_config(cfg)

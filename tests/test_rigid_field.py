@@ -183,7 +183,7 @@ def test_rigid_takes_its_own_defaults_for_samples_and_decay_unless_given():
 
     from evdnerf_ros.train.config import TrainConfig
 
-    assert (TrainConfig().n_samples, TrainConfig().lr_final) == (48, 1.0)
+    assert (TrainConfig(backbone="planes").n_samples, TrainConfig(backbone="planes").lr_final) == (48, 1.0)
     assert (TrainConfig(backbone="rigid").n_samples, TrainConfig(backbone="rigid").lr_final) == (64, 0.1)
     assert TrainConfig(backbone="rigid", n_samples=32).n_samples == 32
     assert (TrainConfig(backbone="hinge").n_samples, TrainConfig(backbone="hinge").lr_final) == (48, 0.1)

@@ -326,7 +326,7 @@ def test_field_source_occupancy_mask_saves_rays_not_pixels(tmp_path):
     from evdnerf_ros.train.checkpoint import save_checkpoint
     from evdnerf_ros.train.config import TrainConfig, field_from_config
 
-    cfg = TrainConfig()
+    cfg = TrainConfig(backbone="planes")
     torch.manual_seed(1)
     occ = torch.zeros((8, 8, 8), dtype=torch.bool)
     occ[3:5, 3:5, 3:5] = True                         # a small occupied core: most rays cross nothing
@@ -373,7 +373,7 @@ def test_a_trained_run_without_trajectory_orbits_its_training_views(tmp_path):
     from evdnerf_ros.train.config import TrainConfig, field_from_config
     from evdnerf_ros.train.run import TrainedRun
 
-    cfg = TrainConfig()
+    cfg = TrainConfig(backbone="planes")
     torch.manual_seed(1)
     ring = [look_at([3 * np.cos(a), 3 * np.sin(a), 0.5], [0.0, 0.0, 0.0]).tolist()
             for a in np.radians([0, 270, 90, 180])]                  # stored out of azimuth order

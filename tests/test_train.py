@@ -18,7 +18,7 @@ SMALL_FIELD = dict(resolutions=[16, 32], time_resolution=8, features=8, hidden=3
 
 
 def small_config(**kw):
-    base = dict(n_samples=24, rays=256, windows=[8], window_switch=[], field=SMALL_FIELD,
+    base = dict(backbone="planes", n_samples=24, rays=256, windows=[8], window_switch=[], field=SMALL_FIELD,
                 lr=2e-2, lr_warmup_iters=10, log_every=0, eval_every=0, time_curriculum=0,
                 checkpoint_every=0)
     base.update(kw)

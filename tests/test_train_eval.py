@@ -105,7 +105,7 @@ def test_training_beats_the_zero_floor_on_validation_views(tiny_set, tmp_path):
     from evdnerf_ros.eval.evaluate import validation_eval
     from evdnerf_ros.train.trainer import run_train
 
-    cfg = {"n_samples": 32, "rays": 512, "windows": [8], "window_switch": [], "eval_every": 600,
+    cfg = {"backbone": "planes", "n_samples": 32, "rays": 512, "windows": [8], "window_switch": [], "eval_every": 600,
            "loss": "mse"}
     run_train(tiny_set, tmp_path / "run", config=cfg, iters=600, log=lambda *_: None,
               eval_fn=validation_eval())

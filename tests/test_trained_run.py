@@ -20,9 +20,9 @@ FIELD = dict(resolutions=[8], time_resolution=4, features=4, hidden=8)
 
 
 def _save(run, *, cfg=None, field=None, extra=None, box=((-1, -1, -1), (1, 1, 1)), iteration=3):
-    cfg = cfg or TrainConfig(field=FIELD).to_dict()
+    cfg = cfg or TrainConfig(backbone="planes", field=FIELD).to_dict()
     torch.manual_seed(0)
-    field = field if field is not None else field_from_config(TrainConfig(field=FIELD))
+    field = field if field is not None else field_from_config(TrainConfig(backbone="planes", field=FIELD))
     run.mkdir(exist_ok=True)
     save_checkpoint(run / "checkpoint.pt", field=field, optimizer=None, iteration=iteration, config=cfg,
                     backbone="planes", rng={}, box=[list(b) for b in box], extra=extra)
@@ -45,7 +45,7 @@ def test_a_good_run_gives_every_piece(tmp_path):
                                          "train_set": {"time_range_ns": [10, 2_000_000_010],
                                                        "thresholds": [0.3, 0.2]}})
     run = TrainedRun.load(tmp_path / "R")
-    assert run.iteration == 3 and run.config == TrainConfig(field=FIELD)
+    assert run.iteration == 3 and run.config == TrainConfig(backbone="planes", field=FIELD)
     np.testing.assert_array_equal(run.box, [[-1, -1, -1], [1, 1, 1]])
     assert isinstance(run.occupancy, OccupancyGrid) and torch.equal(run.occupancy.occupied, occ)
     assert isinstance(run.dynamic, DynamicRegion) and torch.equal(run.dynamic.mask, dyn)
@@ -102,8 +102,8 @@ def test_damaged_or_foreign_checkpoints(tmp_path):
 
 def _base(**over):
     d = {"format": FORMAT, "format_version": FORMAT_VERSION, "software_version": __version__,
-         "iteration": 1, "config": TrainConfig(field=FIELD).to_dict(), "backbone": "planes",
-         "field": field_from_config(TrainConfig(field=FIELD)).state_dict(), "optimizer": None, "rng": {},
+         "iteration": 1, "config": TrainConfig(backbone="planes", field=FIELD).to_dict(), "backbone": "planes",
+         "field": field_from_config(TrainConfig(backbone="planes", field=FIELD)).state_dict(), "optimizer": None, "rng": {},
          "box": [[-1, -1, -1], [1, 1, 1]], "extra": {}}
     d.update(over)
     return {k: v for k, v in d.items() if v is not KeyError}
@@ -112,7 +112,7 @@ def _base(**over):
 @pytest.mark.parametrize("over, message", [
     (dict(field=KeyError), "holds no field: damaged or not written by `evdnerf train`; train again"),
     (dict(config=KeyError, box=KeyError), "holds no config, box"),
-    (dict(config=dict(TrainConfig().to_dict(), rays=-4)), r"checkpoint.pt \(config\): rays: must be >= 1"),
+    (dict(config=dict(TrainConfig(backbone="planes").to_dict(), rays=-4)), r"checkpoint.pt \(config\): rays: must be >= 1"),
     (dict(config={"learning_rate": 1}), r"checkpoint.pt \(config\): learning_rate: unknown key"),
     (dict(iteration=-1), "iteration -1 is not a count"),
     (dict(box=[[0, 0, 0], [0, 1, 1]]), "scene box .* max > min"),

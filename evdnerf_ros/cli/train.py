@@ -65,8 +65,9 @@ def _cmd_report(args) -> int:
 
 def register(sub) -> None:
     p = sub.add_parser("train", help="fit a dynamic radiance field to the events of TRAIN.h5",
-                       description="Train the field (default backbone: planes) on the events "
-                                   "alone; RUN holds config.yaml, checkpoint.pt (atomic; a RUN "
+                       description="Train the field on the events alone (backbone auto, the default, "
+                                   "chooses hinge, rigid or planes from the training set and logs why); "
+                                   "RUN holds config.yaml, checkpoint.pt (atomic; a RUN "
                                    "with a checkpoint resumes bit-exactly) and metrics.jsonl "
                                    "(loss and validation events-PSNR against wall time).")
     p.add_argument("train_set", help="TRAIN.h5 from `evdnerf convert`")

@@ -11,6 +11,7 @@ the file and the key.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
@@ -22,13 +23,16 @@ from .ranges import check_config
 
 LOSSES = ("bin", "bin_paper", "mse")
 
+#: The backbone the trainer chooses from the training set (``train/auto.py``).
+AUTO = "auto"
+
 #: Keys that may differ between a checkpoint and the resuming run (they do not change
 #: the optimisation itself, only how often it is observed or saved).
 RESUME_FREE_KEYS = ("eval_every", "checkpoint_every", "log_every")
 
 #: Keys added after runs were first saved, with the value that keeps such a run what it was: a
 #: saved config (a checkpoint's) that lacks one gets this value, not today's default.
-ADDED_KEYS = {"background_cells": 0, "span_fraction": 0.0, "empty_weight": 0.0, "part_empty_weight": 0.0,
+ADDED_KEYS = {"backbone": "planes", "background_cells": 0, "span_fraction": 0.0, "empty_weight": 0.0, "part_empty_weight": 0.0,
               "camera_grid": False, "pixel_samples": 1, "part_box": False}
 
 #: Options whose default depends on the backbone (None or left out: the backbone's value).
@@ -49,7 +53,10 @@ BACKBONE_DEFAULTS = {"rigid": {"n_samples": 64, "lr_final": 0.1},
 
 
 def backbone_defaults(backbone) -> dict:
-    """The backbone-dependent options' defaults for ``backbone``."""
+    """The backbone-dependent options' defaults for ``backbone`` (None for ``auto``: they wait
+    for the choice)."""
+    if backbone == AUTO:
+        return dict.fromkeys(PLAIN_DEFAULTS)
     return {**PLAIN_DEFAULTS, **BACKBONE_DEFAULTS.get(backbone if isinstance(backbone, str) else "", {})}
 
 #: A config file larger than this is not a config (a training set passed by mistake?).
@@ -59,8 +66,10 @@ MAX_CONFIG_BYTES = 1 << 20
 @dataclass
 class TrainConfig:
     # ---- model
-    backbone: str = "planes"
-    """Field backbone: ``planes`` (K-Planes style, default), ``dnerf`` (the paper's MLPs),
+    backbone: str = AUTO
+    """Field backbone: ``auto`` (default: the trainer chooses ``hinge``, ``rigid`` or ``planes``
+    from the training set, logs why and records the choice; ``train/auto.py``), ``planes``
+    (K-Planes style), ``dnerf`` (the paper's MLPs),
     ``hinge`` (a static world and one rigid part on the rig's joint, recorded in the training
     set: ``field.joint``) or ``rigid`` (a static world and one rigid part whose pose is learned,
     starting from the events' per-time visual hulls: ``field.track``)."""
@@ -261,6 +270,15 @@ class TrainConfig:
         check_config(self, source)
         self.source = source           # where it came from, for later errors (not a key)
 
+    def with_backbone(self, backbone: str, **field_keys) -> "TrainConfig":
+        """A copy with ``backbone`` (the choice ``auto`` waited for) and ``field_keys`` added to
+        ``field``; options left to the backbone take its defaults; checked as a whole."""
+        cfg = copy.deepcopy(self)      # not dataclasses.replace: its check would name no source
+        cfg.backbone, cfg.field = backbone, {**self.field, **field_keys}
+        cfg._backbone_defaults()
+        cfg.validate(self.source)
+        return cfg
+
     # ---- (de)serialisation
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -316,8 +334,12 @@ def _normal(obj: Any):
 def field_from_config(cfg: TrainConfig):
     """The untrained field a config describes: its backbone and sizes, and its learned
     background when ``background_cells`` is set."""
+    from ..errors import InputError
     from ..field import make_field
 
+    if cfg.backbone == AUTO:
+        raise InputError(f"{cfg.source}: backbone auto is chosen from a training set, by the trainer; "
+                         "name a backbone (planes, hinge, rigid or dnerf) to build a field without one")
     return make_field(cfg.backbone, background_cells=cfg.background_cells,
                       background_grey=cfg.background, **cfg.field)
 

@@ -128,15 +128,15 @@ def number_list(value, where: Where, low, high, kind: str, *, low_open=False, mi
 def check_config(cfg, source: str = "training config") -> None:
     """Check every key of ``cfg`` (a TrainConfig) in place; normalise numbers to int/float."""
     from ..field import BACKBONES
+    from .config import AUTO, LOSSES
 
     top = Where(source)
 
     def name(key):
         return top / key
 
-    cfg.backbone = choice(cfg.backbone, name("backbone"), sorted(BACKBONES))
+    cfg.backbone = choice(cfg.backbone, name("backbone"), [AUTO, *sorted(BACKBONES)])
     cfg.supervision = choice(cfg.supervision, name("supervision"), ("events", "frames"))
-    from .config import LOSSES
     cfg.loss = choice(cfg.loss, name("loss"), LOSSES)
     for key in BOOLS:
         setattr(cfg, key, boolean(getattr(cfg, key), name(key)))
@@ -165,12 +165,18 @@ def check_config(cfg, source: str = "training config") -> None:
         name("learn_thresholds").fail("needs supervision: events")
     if cfg.pixel_samples > 1 and cfg.supervision != "events":
         name("pixel_samples").fail("needs supervision: events (frames are fitted one ray per pixel); set it to 1")
+    if not (isinstance(cfg.part_box, bool) or cfg.part_box == "auto"
+            or (cfg.part_box is None and cfg.backbone == AUTO)):
+        name("part_box").fail(f"expected true, false or auto, got {show(cfg.part_box)}")
+    if cfg.backbone == AUTO:
+        # sizes are checked by the rule of a backbone auto may choose; what fits only one backbone
+        # is checked again once the trainer has chosen it
+        cfg.field = check_auto_field(cfg.field, name("field"))
+        return
     from ..field.part import PartField
     if cfg.part_empty_weight and not issubclass(BACKBONES[cfg.backbone], PartField):
         name("part_empty_weight").fail(f"is the moving part's prior, and a {cfg.backbone} field has no part; "
                                        "set it to 0 or train backbone hinge or rigid")
-    if not (isinstance(cfg.part_box, bool) or cfg.part_box == "auto"):
-        name("part_box").fail(f"expected true, false or auto, got {show(cfg.part_box)}")
     if cfg.part_box and cfg.backbone != "hinge":
         name("part_box").fail(f"bounds the hinge field's part by its joint, and a {cfg.backbone} field has none; "
                               "set it to false or train backbone hinge")
@@ -190,6 +196,30 @@ def check_box(box, where: Where) -> list:
     if not all(b > a for a, b in zip(lo, hi)):
         where.fail(f"each max must exceed its min, got {[lo, hi]}")
     return [lo, hi]
+
+
+#: The backbones ``auto`` chooses from (``train/auto.py``).
+AUTO_CHOICES = ("hinge", "planes", "rigid")
+
+
+def check_auto_field(sizes, name: Where) -> dict:
+    """``field`` sizes given with ``backbone: auto``: each a size of a backbone auto may choose,
+    in that backbone's range (the ranges of a size the backbones share agree)."""
+    from ..field import BACKBONES
+
+    if not isinstance(sizes, dict):
+        name.fail(f"expected a mapping of the backbone's sizes, got {show(sizes)}")
+    known = {b: [p for p in inspect.signature(BACKBONES[b].__init__).parameters if p != "self"]
+             for b in AUTO_CHOICES}
+    out = {}
+    for key, value in sizes.items():
+        owner = next((b for b in AUTO_CHOICES if key in known[b]), None)
+        if owner is None:
+            every = sorted({k for ks in known.values() for k in ks})
+            (name / str(key)).fail(f"unknown size for backbone auto (which chooses {', '.join(AUTO_CHOICES)}); "
+                                   f"known: {', '.join(every)}")
+        out.update(check_field(owner, {key: value}, name))
+    return out
 
 
 def check_field(backbone: str, sizes, name: Where) -> dict:
@@ -298,6 +328,12 @@ def bytes_per_sample(cfg) -> int:
     return 4 * (3 * (depth * width + cd * cw) + 4 * pe + 64)
 
 
+def carving_bytes(resolution: int) -> float:
+    """Carving the events' footprints into ``resolution``^3 voxels (the dynamic region, the moving
+    part's track): voxel centres and their projection (float64), plus the per-pixel ray march."""
+    return 120.0 * resolution ** 3 + 4096 * 7 * resolution * 48.0
+
+
 def memory_estimates(cfg, *, views: int, pixels: int) -> list[tuple[float, str, str]]:
     """[(bytes, what, fix)] for what ``cfg`` allocates on a set of ``views`` training views
     of ``pixels`` pixels each."""
@@ -321,9 +357,7 @@ def memory_estimates(cfg, *, views: int, pixels: int) -> list[tuple[float, str, 
                     "lower windows"))
         if cfg.dynamic_region:
             r = cfg.dynamic_resolution
-            # voxel centres and their projection (float64), plus the per-pixel ray march
-            out.append((120.0 * r ** 3 + 4096 * 7 * r * 48.0,
-                        f"the dynamic region ({r}^3 voxels)", "lower dynamic_resolution"))
+            out.append((carving_bytes(r), f"the dynamic region ({r}^3 voxels)", "lower dynamic_resolution"))
     if cfg.occupancy_resolution:
         r = cfg.occupancy_resolution
         out.append((40.0 * r ** 3, f"the occupancy grid ({r}^3 cells)",

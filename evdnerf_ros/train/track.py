@@ -12,6 +12,8 @@ the voxels' distances, with a margin) bounds the part: its ``radius``.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..errors import InputError
@@ -27,16 +29,25 @@ TRACK_KNOTS = 33
 RADIUS_MARGIN = 1.15
 
 
-def track_from_events(train_set, box, *, bins: int = TRACK_BINS, knots: int = TRACK_KNOTS,
-                      resolution: int = 64, min_events: int = 1, dilate_px: int = 1,
-                      misses: int = 0) -> dict:
-    """``RigidField``'s ``track`` for the scene ``box``: the centre (box-normalised) at ``knots``
-    times over the span, the box's half extents and the part's radius (metres)."""
-    where = getattr(train_set, "path", "training set")
+@dataclass(frozen=True)
+class FoundTrack:
+    """What carving the events per time bin found: the track (None where no bin's hull holds
+    anything) and in how many of the ``bins`` bins a hull was found."""
+    track: dict | None
+    bins_found: int
+    bins: int
+
+
+def find_track(train_set, box, *, bins: int = TRACK_BINS, knots: int = TRACK_KNOTS,
+               resolution: int = 64, min_events: int = 1, dilate_px: int = 1,
+               misses: int = 0) -> FoundTrack | None:
+    """The moving part's track for the scene ``box`` (``RigidField``'s ``track``: the centre,
+    box-normalised, at ``knots`` times over the span, the box's half extents and the part's
+    radius in metres) and how many time bins it rests on; None where the set has no static
+    training view to carve with."""
     static = [v for v in train_set.train_views if train_set.poses(v) is None]
     if not static:
-        raise InputError(f"{where}: backbone rigid tracks the moving part with static training views, "
-                         "and the set has none; train with backbone planes")
+        return None
     t0, t1 = (int(v) for v in train_set.time_range)
     edges = t0 + (np.arange(bins + 1, dtype=np.int64) * (t1 - t0)) // bins
     edges[-1] = t1 + 1                               # the last bin keeps events at t1
@@ -49,8 +60,7 @@ def track_from_events(train_set, box, *, bins: int = TRACK_BINS, knots: int = TR
     grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
     found = [b for b in range(bins) if hulls[b].any()]
     if not found:
-        raise InputError(f"{where}: backbone rigid found no moving part (no time bin's events agree "
-                         "between the training views); train with backbone planes")
+        return FoundTrack(None, 0, bins)
     lo, hi = (np.asarray(b, np.float64) for b in box)
     half = (hi - lo) / 2.0
     centres, reach = [], []
@@ -63,5 +73,19 @@ def track_from_events(train_set, box, *, bins: int = TRACK_BINS, knots: int = TR
     mid = (np.asarray(found, np.float64) + 0.5) / bins
     u = np.linspace(0.0, 1.0, int(knots))
     track = np.stack([np.interp(u, mid, centres[:, i]) for i in range(3)], 1)
-    return {"centre": track.round(6).tolist(), "half": half.tolist(),
-            "radius": round(RADIUS_MARGIN * float(np.median(reach)) + voxel, 6)}
+    return FoundTrack({"centre": track.round(6).tolist(), "half": half.tolist(),
+                       "radius": round(RADIUS_MARGIN * float(np.median(reach)) + voxel, 6)},
+                      len(found), bins)
+
+
+def track_from_events(train_set, box, **carving) -> dict:
+    """``find_track``'s track; an InputError naming the set where there is none."""
+    where = getattr(train_set, "path", "training set")
+    found = find_track(train_set, box, **carving)
+    if found is None:
+        raise InputError(f"{where}: backbone rigid tracks the moving part with static training views, "
+                         "and the set has none; train with backbone planes")
+    if found.track is None:
+        raise InputError(f"{where}: backbone rigid found no moving part (no time bin's events agree "
+                         "between the training views); train with backbone planes")
+    return found.track

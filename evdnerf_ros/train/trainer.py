@@ -47,14 +47,15 @@ from ..errors import EvdnerfError, InputError
 from ..field import DynamicRegion, OccupancyGrid, render_rays
 from ..field.hinge import RESOLUTIONS as HINGE_RESOLUTIONS
 from ..field.render import pixel_means
-from ..limits import check_number
+from ..limits import check_memory, check_number
 from .checkpoint import (CheckpointError, global_rng_states, load_checkpoint, save_checkpoint,
                          set_global_rng_states)
-from .config import TrainConfig, _normal, field_from_config, resolve_config
+from .auto import choose_backbone
+from .config import AUTO, TrainConfig, _normal, field_from_config, resolve_config
 from .joint import joint_from_training_set, part_box, part_box_pays
 from .interrupts import DeferredInterrupts
 from .losses import bin_loss, mse_loss, no_event_hinge
-from .ranges import NUMBERS, check_training_memory
+from .ranges import NUMBERS, carving_bytes, check_training_memory
 from .run import TrainedRun, train_set_record
 from .rundir import (CHECKPOINT_NAME, CONFIG_NAME, LOCK_NAME, METRICS_NAME, RunLock,
                      truncate_metrics, write_text)
@@ -110,6 +111,11 @@ class Trainer:
             iters = DEFAULT_ITERS
         self.iters = check_budget(iters, "iters", "iters")
         self.minutes = check_budget(minutes, "minutes", "minutes")
+        self.box = np.asarray(cfg.box, np.float64) if cfg.box is not None else \
+            default_box(train_set, cfg.box_fraction)
+        self.backbone_reason = None
+        if cfg.backbone == AUTO:
+            cfg = self.cfg = self._choose_backbone(cfg)
         # everything below allocates: size it first
         check_training_memory(cfg, views=len(train_set.train_views),
                               pixels=int(train_set.width) * int(train_set.height),
@@ -117,8 +123,6 @@ class Trainer:
         random.seed(cfg.seed)
         np.random.seed(cfg.seed % (1 << 32))
         torch.manual_seed(cfg.seed)
-        self.box = np.asarray(cfg.box, np.float64) if cfg.box is not None else \
-            default_box(train_set, cfg.box_fraction)
         self.dynamic = (DynamicRegion.from_event_footprint(
             train_set, self.box, resolution=cfg.dynamic_resolution,
             min_events=cfg.dynamic_min_events, dilate_px=cfg.dynamic_dilate_px,
@@ -174,6 +178,20 @@ class Trainer:
         self._loss_sum, self._loss_n = 0.0, 0    # losses since the last metrics line
         self._metrics_due = False      # this iteration's metrics line is not written yet
         self._mid_step = False         # an iteration is under way (state not consistent)
+
+    def _choose_backbone(self, cfg: TrainConfig) -> TrainConfig:
+        """``backbone: auto`` resolved from the training set (``train/auto.py``), logged."""
+        r = cfg.dynamic_resolution                  # the track is carved before the field is sized
+        check_memory(carving_bytes(r), f"{cfg.source}: backbone auto's track of the moving part ({r}^3 voxels)",
+                     "lower dynamic_resolution")
+        name, why, found = choose_backbone(self.ts, self.box, cfg)
+        self.backbone_reason = why
+        self.log(f"backbone auto: {name}, because {why}")
+        try:
+            return cfg.with_backbone(name, **found)
+        except InputError as exc:
+            raise InputError(f"{exc} (backbone auto chose {name}, because {why}; name the backbone "
+                             "these options belong to)") from None
 
     # ------------------------------------------------------------------ schedules
     def progress(self) -> float:
@@ -662,9 +680,12 @@ def _train_locked(train_h5, run_dir: Path, lock: RunLock, given, *, iters, minut
             for p in (ckpt, metrics):
                 if p.exists():
                     p.unlink()
-        write_text(config_path, tr.cfg.dump())      # as trained (a hinge run: with its joint)
+        chosen = (f"# backbone: auto chose {tr.cfg.backbone}, because {tr.backbone_reason}\n"
+                  if tr.backbone_reason else "")
+        write_text(config_path, chosen + tr.cfg.dump())   # as trained (a hinge run: with its joint)
         summary = tr.train()
-    summary.update({"run_dir": str(run_dir), "resumed": resume, "metrics": str(metrics)})
+    summary.update({"run_dir": str(run_dir), "resumed": resume, "metrics": str(metrics),
+                    "backbone": tr.cfg.backbone, "backbone_reason": tr.backbone_reason})
     return summary
 
 
