@@ -173,6 +173,17 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
 
     events = read_events(out / pub["bag"], "/event_publisher/events").events
     assert pub["events"] == events.size > 0 and pub["sim_seconds"] > 0.5 and pub["rtf"] > 0
+    # ... and scored against the events the camera would truly see along that ring
+    assert pub["scored"] and pub["true_events"] > 0 and np.isfinite(pub["margin_closed"])
+    assert pub["count_rel_diff"] == (pub["events"] - pub["true_events"]) / pub["true_events"]
+    assert pub["zero_floor_psnr"] < pub["true_render_psnr"]
+    import matplotlib.image
+
+    picture = matplotlib.image.imread(out / pub["picture"])[..., :3]
+    top, bottom = picture[: picture.shape[0] // 2], picture[picture.shape[0] // 2:]
+    assert (top < 0.9).any(axis=-1).mean() > 0.01 and (bottom < 0.99).any()     # neither half blank
+    assert summary["backbone"]["chosen"] == "hinge" and "joint" in summary["backbone"]["why"]
+    assert summary["training"]["val"]["psnr_pooled"]["true_scene"] > summary["training"]["val"]["psnr_pooled"]["floor"]
     assert main(["demo", "-o", str(out)]) == 2          # refuses to overwrite
     assert "already exists" in capsys.readouterr().err
 

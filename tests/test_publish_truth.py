@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from evdnerf_ros.events import make_events
-from evdnerf_ros.eval.published import event_image_stack, first_event_timing, published_vs_true, publisher_cost
+from evdnerf_ros.eval.published import (event_image_stack, first_event_timing, published_vs_true, publisher_cost,
+                                        side_by_side)
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +37,7 @@ def test_event_images_and_first_event_timing_by_hand():
     assert ft["median_abs_dt_us"] == pytest.approx(np.median([5, 20]) / 1e3)
 
 
-def test_published_vs_true_on_a_tiny_scene(tiny_run, tiny_train_h5):
+def test_published_vs_true_on_a_tiny_scene(tiny_run, tiny_train_h5, tmp_path):
     r = published_vs_true(tiny_run, tiny_train_h5, n_windows=8, static=True, duration_ns=300_000_000,
                           log=lambda *_: None)
     assert (r["width"], r["height"], r["windows"], r["path"]) == (32, 32, 8, "static")
@@ -51,6 +52,17 @@ def test_published_vs_true_on_a_tiny_scene(tiny_run, tiny_train_h5):
     assert r["margin_closed"] is None or np.isfinite(r["margin_closed"])
     assert 0.0 <= r["first_events"]["matched"] <= 1.0
     assert r["publisher"]["rtf"] > 0 and r["publisher"]["samples_evaluated"] < r["publisher"]["samples_total"]
+    # both image stacks, and the picture of the busiest true windows: true on top, published below
+    assert r["images"]["true"].shape == r["images"]["published"].shape == (8, 32, 32)
+    c_pos, c_neg = r["thresholds"]
+    np.testing.assert_allclose(r["images"]["true"].sum(), c_pos * c["true_on"] - c_neg * c["true_off"], rtol=1e-4,
+                               atol=2 * max(c_pos, c_neg))   # an event at the span's end is in no window
+    picture = side_by_side(r, tmp_path / "pv.png", windows=3, upscale=2)
+    import matplotlib.image
+
+    rgb = matplotlib.image.imread(picture)[..., :3]
+    assert rgb.shape == (2 * (2 * 32 + 2), 2 * (3 * 32 + 2 * 2), 3)
+    assert (rgb[: 2 * 32] < 0.9).any(axis=-1).any()                 # the true windows are not blank
     # the truth can be reused (the benchmark's sweep): same reference, same scores for the same publisher
     again = published_vs_true(tiny_run, tiny_train_h5, n_windows=8, static=True, duration_ns=300_000_000,
                               true_reference=r["reference"], log=lambda *_: None)

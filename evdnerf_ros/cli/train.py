@@ -34,15 +34,20 @@ def _cmd_eval(args) -> int:
 
     options = options_from_args(EvalOptions, args)
     if options.published:
-        from ..eval.published import published_vs_true
+        from ..eval.published import PICTURE_WINDOWS, published_vs_true, side_by_side
 
         result = published_vs_true(args.run, args.train_set, n_windows=options.windows or options.published_windows,
                                     static=options.published == "static",
                                     publisher={"device": options.device},
                                     log=(lambda *_: None) if args.json else print)
         result.pop("reference")
+        result["picture"] = str(side_by_side(result, Path(args.run) / "published_vs_true.png"))
+        result.pop("images")
         if args.json:
             print(json.dumps(result, indent=2))
+        else:
+            print(f"true events (top) and published events (below) in the {PICTURE_WINDOWS} windows with the most "
+                  f"true events: {result['picture']}")
         return 0
 
     result = run_eval(args.run, args.train_set, n_windows=options.windows, max_views=options.max_views,

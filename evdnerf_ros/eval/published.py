@@ -30,7 +30,9 @@ image E = C+ N+ - C- N- (Eq. 5):
   percentile of |t_published - t_true| over those (microseconds).
 
 The publisher's own cost is reported too (wall seconds, real-time factor, renders, field
-evaluations), so a benchmark can plot error against run time for each speed-up.
+evaluations), so a benchmark can plot error against run time for each speed-up.  The result also
+holds both event-image stacks (``images``: true and published, (windows, H, W)), which
+``side_by_side`` draws for the windows with the most true events.
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ from .metrics import event_metrics
 from .truth import margin_closed
 
 NS = 1_000_000_000
+#: Windows ``side_by_side`` draws.
+PICTURE_WINDOWS = 4
 
 
 def _write_trajectory(path: Path, t, T) -> Path:
@@ -251,7 +255,7 @@ def published_vs_true(run_dir, train_h5=None, *, n_windows: int = 32, static: bo
               "counts": counts, "first_events": first_event_timing(pub, true, edges, cam.width, cam.height),
               "publisher": _cost(rep, publisher),
               "true_publisher": {"wall_s": true_reference["wall_s"], "renders": true_reference["renders"]},
-              "reference": true_reference}
+              "reference": true_reference, "images": {"true": true_img, "published": pub_img}}
     log(f"published vs true ({result['path']}, {cam.width}x{cam.height}, {n_windows} windows): events PSNR "
         f"{m['continuous']['psnr']:.2f} dB (all-zero floor {m['zero_floor']['psnr']:.2f}, true render "
         f"{ref_m['continuous']['psnr']:.2f}), MAE {m['continuous']['mae']:.4f}; events ON "
@@ -261,4 +265,24 @@ def published_vs_true(run_dir, train_h5=None, *, n_windows: int = 32, static: bo
     return result
 
 
-__all__ = ["published_vs_true", "publisher_cost", "event_image_stack", "first_event_timing"]
+def side_by_side(result: dict, path, *, windows: int = PICTURE_WINDOWS, upscale: int = 4) -> Path:
+    """A PNG of ``published_vs_true``'s ``windows`` windows with the most true change (in time
+    order): the true events' image on top, the published events' below, on one colour scale (the
+    largest |E| of the true windows shown; red ON, blue OFF)."""
+    from ..events import save_png
+    from ..events.images import signed_to_rgb
+
+    true_img, pub_img = (np.asarray(result["images"][k], np.float32) for k in ("true", "published"))
+    energy = np.abs(true_img).reshape(len(true_img), -1).sum(1)
+    picked = np.sort(np.argsort(-energy, kind="stable")[:max(1, int(windows))])
+    vmax = float(np.abs(true_img[picked]).max()) or 1.0
+    height, width = true_img.shape[1:]
+    gap_v = np.full((height, 2, 3), 128, np.uint8)
+    rows = []
+    for stack in (true_img, pub_img):
+        tiles = [x for k in picked for x in (signed_to_rgb(stack[k], vmax=vmax), gap_v)][:-1]
+        rows.extend([np.concatenate(tiles, axis=1), np.full((2, len(picked) * (width + 2) - 2, 3), 128, np.uint8)])
+    return save_png(path, np.concatenate(rows[:-1], axis=0), upscale=upscale)
+
+
+__all__ = ["side_by_side", "published_vs_true", "publisher_cost", "event_image_stack", "first_event_timing"]
