@@ -153,7 +153,7 @@ def run_demo(out_dir: Path, options: DemoOptions | None = None, *, overwrite: bo
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
     log(f"demo finished: outputs in {out_dir}/ (session/ with sync.png, conversions/, train.h5, "
         "event_images.png, event_rates.png, run/ with metrics.jsonl and eval_events.png, "
-        "report/report.png, published/ with published_vs_true.png, summary.json)")
+        "report/report.png, published/, published_vs_true.png, summary.json)")
     return summary
 
 
@@ -171,8 +171,16 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: Se
 
     log(f"session source: {source.name} ({source.why})")
     start = time.perf_counter()
+    stages, last = {}, [start]
+
+    def lap(stage: str) -> None:           # the wall time of each stage, for summary.json
+        now = time.perf_counter()
+        stages[stage] = round(now - last[0], 1)
+        last[0] = now
+
     session = source.make(out / "session", log=log)
     session_seconds = time.perf_counter() - start
+    lap("session")
     views = session["views"]
     # a capture's scene fills only a window of the sensor: the pictures and the training set keep it
     crop = ((session.get("rig") or {}).get("virtual") or {}).get("scene_window")
@@ -202,6 +210,7 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: Se
                                         "bit_exact": True}
         log(f"  {name:<20} {encoding or '-':<6} {size / n:6.2f} B/event  bit-exact")
 
+    lap("round_trips")
     synced = run_sync(out / "session", log=log)
     motion_start = session["time"]["motion_start_ns"]
     truth = {v["name"]: (v.get("ground_truth") or {}).get("clock_offset_ns") for v in views}
@@ -213,6 +222,7 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: Se
         log("  no true clock offset (sync not checked) for: "
             + ", ".join(k for k, gt in truth.items() if gt is None))
     summary["sync_error_us"] = errors_us
+    lap("sync")
 
     images, curves = [], {}
     servo_start = session["servo"]["start_ns_scene"]
@@ -231,6 +241,7 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: Se
     plot_event_rate(out / "event_rates.png", curves,
                     title="event rate per view (5 ms bins), each in its own clock", t_origin_ns=0)
 
+    lap("pictures")
     run_convert(out / "session", out / "train.h5", log=log, crop=None if crop is None else tuple(crop))
     with TrainingSet(out / "train.h5") as ts:
         t0, t1 = ts.time_range
@@ -238,6 +249,7 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: Se
         summary["train_h5"] = {"views": len(ts.views), "time_range_ns": [int(t0), int(t1)],
                                "size": [int(ts.width), int(ts.height)], "crop": crop,
                                "dl_abs_sum_view0": float(abs(d_l).sum())}
+    lap("convert")
 
     n_train = sum(v["split"] == "train" and not v.get("moving_arc_deg") for v in views)
     budget = (f"{train_iterations} iterations (at most {train_minutes:g} min)" if train_iterations
@@ -250,6 +262,7 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: Se
         log(f"the {train_minutes:g}-minute bound stopped training at {trained['iterations']} of {train_iterations} "
             "iterations (a slow or busy machine): this field is younger than the demo's")
     summary["backbone"] = {"chosen": trained["backbone"], "why": trained["backbone_reason"]}
+    lap("train")
     result = run_eval(out / "run", out / "train.h5", factors=(1, 4),
                       image_path=out / "run" / "eval_events.png", log=log)
     run_report([out / "run"], out / "report")
@@ -272,11 +285,14 @@ def _run(out: Path, final_dir: Path, log_final, train_minutes: float, source: Se
     else:
         log("moving-camera view: skipped (a turntable capture records static views only)"
             if source.name == VIRTUAL_RIG else "moving-camera view: none in this session")
+    lap("eval")
     summary["published"] = _publish(out / "run", out / "train.h5", out, log)
+    lap("publish")
     for split, scores in (("validation views", val), ("moving camera", moving)):
         if scores is not None:
             log(_verdict(split, _against_truth(scores)))
     summary["wall_seconds"] = round(time.perf_counter() - start, 1)
+    summary["stage_seconds"] = stages
     return summary
 
 
@@ -313,8 +329,8 @@ def _publish(run_dir: Path, train_h5: Path, out: Path, log) -> dict:
                "first_events_matched": result["first_events"]["matched"], "picture": picture.name,
                "sim_seconds": result["span_s"], "wall_seconds": round(cost["wall_s"], 3), "rtf": cost["rtf"],
                "bake_resolution": PUBLISH_BAKE, "source_seconds": round(cost["source_s"], 3)}
-    log(f"published {result['span_s']:.3f} s of events ({published} events; the camera would truly see {true}) "
-        f"a camera going round the training views would see into {bag.name}/ at {cost['rtf']:.2f}x real time; "
+    log(f"published into {bag.name}/ {result['span_s']:.3f} s of the events a camera going round the training views "
+        f"would see ({published} events; it would truly see {true}) at {cost['rtf']:.2f}x real time; "
         f"margin closed {_percent(result['margin_closed'])} at {PUBLISH_WINDOWS} windows; {picture.name}: true "
         f"(top) and published (below) events in the {PICTURE_WINDOWS} busiest windows")
     return summary

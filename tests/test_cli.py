@@ -184,6 +184,10 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert (top < 0.9).any(axis=-1).mean() > 0.01 and (bottom < 0.99).any()     # neither half blank
     assert summary["backbone"]["chosen"] == "hinge" and "joint" in summary["backbone"]["why"]
     assert summary["training"]["val"]["psnr_pooled"]["true_scene"] > summary["training"]["val"]["psnr_pooled"]["floor"]
+    stages = summary["stage_seconds"]
+    assert list(stages) == ["session", "round_trips", "sync", "pictures", "convert", "train", "eval", "publish"]
+    assert all(v >= 0 for v in stages.values()) and sum(stages.values()) <= summary["wall_seconds"] + 0.5
+    assert summary["training"]["stopped_by"] == "iterations"
     assert main(["demo", "-o", str(out)]) == 2          # refuses to overwrite
     assert "already exists" in capsys.readouterr().err
 

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+#: The backbones ``auto`` chooses from.
+CHOICES = ("hinge", "planes", "rigid")
 #: Share of the time bins whose hull must hold the part for a track to count as found.
 MIN_TRACKED = 0.5
 #: Largest part radius, as a share of the scene box's half-diagonal, that ``rigid`` takes.

@@ -198,14 +198,11 @@ def check_box(box, where: Where) -> list:
     return [lo, hi]
 
 
-#: The backbones ``auto`` chooses from (``train/auto.py``).
-AUTO_CHOICES = ("hinge", "planes", "rigid")
-
-
 def check_auto_field(sizes, name: Where) -> dict:
     """``field`` sizes given with ``backbone: auto``: each a size of a backbone auto may choose,
     in that backbone's range (the ranges of a size the backbones share agree)."""
     from ..field import BACKBONES
+    from .auto import CHOICES as AUTO_CHOICES
 
     if not isinstance(sizes, dict):
         name.fail(f"expected a mapping of the backbone's sizes, got {show(sizes)}")
