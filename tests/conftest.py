@@ -39,6 +39,19 @@ def random_events(rng, n, width=64, height=48, t0=0, span=1_000_000_000):
                        rng.choice(np.array([-1, 1], np.int8), n))
 
 
+class NoEvents:
+    """A training set with every view's events gone (a scene where nothing moved)."""
+
+    def __init__(self, ts):
+        self.ts = ts
+
+    def __getattr__(self, name):
+        return getattr(self.ts, name)
+
+    def iter_events(self, view, *args, **kwargs):
+        return iter(())
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import yaml
 
+from conftest import NoEvents
 from evdnerf_ros.errors import InputError
 
 
@@ -85,16 +86,6 @@ def test_a_set_where_nothing_moves_gets_planes(jet_h5):
     from evdnerf_ros.io.trainingset import TrainingSet
     from evdnerf_ros.train.auto import choose_backbone
     from evdnerf_ros.train.config import TrainConfig
-
-    class NoEvents:
-        def __init__(self, ts):
-            self.ts = ts
-
-        def __getattr__(self, name):
-            return getattr(self.ts, name)
-
-        def iter_events(self, view, *args, **kwargs):
-            return iter(())
 
     with TrainingSet(jet_h5) as ts:
         name, why, _ = choose_backbone(NoEvents(ts), np.array([[-1.4] * 3, [1.4] * 3]), TrainConfig())

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import NoEvents
 from evdnerf_ros.errors import InputError
 from evdnerf_ros.field import RigidField, make_field
 from evdnerf_ros.field.rigid import rotate
@@ -127,18 +128,6 @@ def test_the_track_from_the_events_follows_the_jet(tiny_jet_h5):
 def test_a_set_without_a_moving_part_says_to_train_planes(tiny_jet_h5):
     from evdnerf_ros.io.trainingset import TrainingSet
     from evdnerf_ros.train.track import track_from_events
-
-    class NoEvents:
-        """The set with every view's events gone (a scene where nothing moved)."""
-
-        def __init__(self, ts):
-            self.ts = ts
-
-        def __getattr__(self, name):
-            return getattr(self.ts, name)
-
-        def iter_events(self, view, *args, **kwargs):
-            return iter(())
 
     box = np.array([[-1.4] * 3, [1.4] * 3])
     with TrainingSet(tiny_jet_h5) as ts:
