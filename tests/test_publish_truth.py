@@ -37,6 +37,27 @@ def test_event_images_and_first_event_timing_by_hand():
     assert ft["median_abs_dt_us"] == pytest.approx(np.median([5, 20]) / 1e3)
 
 
+def test_split_scores_by_the_moving_parts_cells():
+    """Pooled scores on the moving parts' cells and on the rest, each against its own floor."""
+    from evdnerf_ros.eval.published import split_scores
+    from evdnerf_ros.events.types import EVENT_DTYPE
+
+    rng = np.random.default_rng(0)
+    true_img = rng.normal(0, 0.2, (4, 6, 5)).astype(np.float32)
+    moving = np.zeros(true_img.shape, bool)
+    moving[:, :3] = True
+    pub = np.where(moving, true_img, 0).astype(np.float32)      # right on the moving parts, nothing elsewhere
+    ev = np.zeros(3, EVENT_DTYPE)
+    ev["t"], ev["x"], ev["y"], ev["p"] = [5, 15, 25], [0, 1, 2], [0, 4, 5], [1, -1, 1]
+    edges = np.array([0, 10, 20, 30, 40], np.int64)
+    s = split_scores(moving, pub, true_img, true_img, 1.0, ev[:1], ev, edges)
+    assert s["moving_parts"]["cells"] == 0.5 and s["static_world"]["cells"] == 0.5
+    assert s["moving_parts"]["margin_closed"] == pytest.approx(1.0)
+    assert s["static_world"]["margin_closed"] == pytest.approx(0.0)
+    assert (s["moving_parts"]["true_events"], s["static_world"]["true_events"]) == (1, 2)
+    assert (s["moving_parts"]["published_events"], s["static_world"]["published_events"]) == (1, 0)
+
+
 def test_published_vs_true_on_a_tiny_scene(tiny_run, tiny_train_h5, tmp_path):
     r = published_vs_true(tiny_run, tiny_train_h5, n_windows=8, static=True, duration_ns=300_000_000,
                           log=lambda *_: None)
@@ -51,6 +72,12 @@ def test_published_vs_true_on_a_tiny_scene(tiny_run, tiny_train_h5, tmp_path):
     assert r["true_render"]["psnr"] > r["zero_floor"]["psnr"] + 3
     assert r["margin_closed"] is None or np.isfinite(r["margin_closed"])
     assert 0.0 <= r["first_events"]["matched"] <= 1.0
+    # a still camera sees events of the moving parts only: (nearly) none fall in the static world's cells
+    moving, world = r["split"]["moving_parts"], r["split"]["static_world"]
+    assert moving["cells"] + world["cells"] == pytest.approx(1.0)
+    assert 0 < moving["cells"] < 0.5 and moving["true_events"] + world["true_events"] <= ref.size
+    assert world["true_events"] <= 0.08 * ref.size, r["split"]
+    assert moving["published_events"] + world["published_events"] <= c["published_on"] + c["published_off"]
     assert r["publisher"]["rtf"] > 0 and r["publisher"]["samples_evaluated"] < r["publisher"]["samples_total"]
     # both image stacks, and the picture of the busiest true windows: true on top, published below
     assert r["images"]["true"].shape == r["images"]["published"].shape == (8, 32, 32)
