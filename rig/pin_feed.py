@@ -45,6 +45,11 @@ class JointTrack:
                             np.concatenate([d, deg.astype(np.float64)]))
 
     @property
+    def frames(self) -> tuple[np.ndarray, np.ndarray]:
+        """(host ns, degrees) of every frame so far (one snapshot)."""
+        return self._frames
+
+    @property
     def last_ns(self) -> int | None:
         t = self._frames[0]
         return int(t[-1]) if t.size else None

@@ -177,6 +177,11 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert pub["scored"] and pub["true_events"] > 0 and np.isfinite(pub["margin_closed"])
     assert pub["count_rel_diff"] == (pub["events"] - pub["true_events"]) / pub["true_events"]
     assert pub["zero_floor_psnr"] < pub["true_render_psnr"]
+    # ... and apart, on the moving parts' cells and on the static world sweeping past the camera
+    parts = pub["split"]
+    assert parts["moving_parts"]["cells"] + parts["static_world"]["cells"] == pytest.approx(1.0)
+    assert 0 < parts["moving_parts"]["true_events"] and parts["static_world"]["true_events"] > 0
+    assert sum(p["true_events"] for p in parts.values()) <= pub["true_events"]
     import matplotlib.image
 
     picture = matplotlib.image.imread(out / pub["picture"])[..., :3]

@@ -140,6 +140,63 @@ def test_a_view_without_its_true_clock_offset_gives_no_reference(sessions, tmp_p
     assert any(why in line for line in lines)          # convert says so too
 
 
+def _profile_track(lag_ns: int, step_ns: int = 1_000_000) -> dict:
+    """The fork's servo angles every ``step_ns`` over the scene, ``lag_ns`` late (a servo_track)."""
+    from evdnerf_ros.sim.scene import load_scene
+
+    scene = load_scene("fork")
+    drive = next(o.servo for o in scene.all_objects() if o.servo is not None)
+    t = np.arange(scene.start_ns - step_ns, scene.end_ns + 2 * step_ns, step_ns, dtype=np.int64)
+    deg = [np.degrees(drive.angle_rad(int(v) - lag_ns)) + drive.zero_deg for v in t]
+    return {"scene_ns": [int(v) for v in t], "deg": [float(v) for v in deg]}
+
+
+def test_the_reference_follows_the_servo_angles_the_twin_rendered(sessions, tmp_path):
+    """A view whose servo commands reached the twin late (the firmware in simavr behind the wall
+    clock): with each view's ``servo_track`` the reference renders those angles, not the profile."""
+    _, cap, offsets = sessions
+    lag = 60_000_000
+    tracked = tmp_path / "tracked"
+    shutil.copytree(cap, tracked)
+    data = yaml.safe_load((tracked / "session.yaml").read_text())
+    for v in data["views"]:
+        v["ground_truth"]["servo_track"] = _profile_track(lag)
+    (tracked / "session.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    with _convert(cap, tmp_path / "cap.h5", offsets) as plain, \
+            _convert(tracked, tmp_path / "tracked.h5", offsets) as ts:
+        assert "servo_tracks" not in plain.provenance["truth"]
+        assert set(ts.provenance["truth"]["servo_tracks"]) == set(ts.views)
+        ref_plain, _ = TrueScene.of(plain)
+        ref_tracked, _ = TrueScene.of(ts)
+        edges = window_edges(*ts.time_range, N_WINDOWS)
+        ks = list(protocol_windows(N_WINDOWS))
+        view = ts.train_views[0]
+        moved = ref_tracked.log_change_stack(view, edges, ks)
+        later = ref_plain.log_change_stack(view, edges - lag, ks)
+        assert np.abs(later).max() > 1                              # the windows see the fork swing
+        np.testing.assert_allclose(moved, later, rtol=0, atol=0.02)
+        # and the lag matters: the profile's own reference differs from the tracked one
+        assert np.abs(ref_plain.log_change_stack(view, edges, ks) - moved).max() > 0.5
+
+
+def test_a_malformed_servo_track_names_its_key(sessions, tmp_path):
+    from evdnerf_ros.errors import InputError
+    from evdnerf_ros.session.layout import load_session
+
+    _, cap, _ = sessions
+    bad = tmp_path / "bad"
+    shutil.copytree(cap, bad)
+    data = yaml.safe_load((bad / "session.yaml").read_text())
+    data["views"][0]["ground_truth"]["servo_track"] = {"scene_ns": [0, 20, 10], "deg": [90, 91, 92]}
+    (bad / "session.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(InputError, match=r"views\[0\]\.ground_truth\.servo_track: scene_ns must increase"):
+        load_session(bad)
+    data["views"][0]["ground_truth"]["servo_track"] = {"scene_ns": [0, 20], "deg": [90]}
+    (bad / "session.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(InputError, match=r"servo_track\.deg: holds 1 angle for the 2 times of scene_ns"):
+        load_session(bad)
+
+
 def test_a_real_capture_gives_no_reference(sessions, tmp_path):
     """A capture not on the virtual rig knows no scene: no reference, the usual reason."""
     _, cap, offsets = sessions

@@ -18,9 +18,12 @@ window the events came from, not the whole sensor.  A virtual-rig capture's came
 only on a grid of its sensor clock (``render_grid``: period and, per view, the scene time of a
 grid point) and joined its renders linearly in log; the reference does the same (on the
 demo's 48x36 fork its squared error against the events, as a multiple of the floor's, fell
-from 1.2x to 0.5x at 128 windows, from 3.1-3.4x to 0.55-0.64x at 256).  The twin's servo
-follows the firmware's 50 Hz commands joined linearly, not the smooth profile rendered here
-(modelled ad hoc, that moved the same ratio by 0.02 only).  A session that knows its scene but
+from 1.2x to 0.5x at 128 windows, from 3.1-3.4x to 0.55-0.64x at 256).  Its servo followed
+the firmware's 50 Hz commands as they reached it, joined linearly; where the record has them
+(``servo_tracks``: per view, scene times and degrees) the reference's servo follows them too,
+not the stored profile (the firmware in simavr is paced by the wall clock: on a busy machine
+one view's commands lagged its trigger by about 72 ms, and the profile-driven reference scored
+4 dB below the floor there).  A session that knows its scene but
 not every view's time in it gets ``truth_note`` instead (why not), which :meth:`TrueScene.of`
 reports.
 """
@@ -91,6 +94,11 @@ class TrueScene:
 
         if view not in self.origin:
             raise EvdnerfError(f"{self.ts.path}: view {view}: no scene time recorded for it")
+        servo = (self.record.get("servo_tracks") or {}).get(view)
+        if servo is not None:
+            from ..sim.joint import follow_servo_track
+
+            follow_servo_track(self.scene, servo["scene_ns"], servo["deg"])
         renderer = self._renderer(self.scene, self._camera(view), supersample=self.supersample)
         track = self.ts.poses(view)
         pose_at = (PoseTrack(*track, source=f"view {view} poses") if track is not None

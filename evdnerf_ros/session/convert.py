@@ -608,7 +608,9 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
                 "views": prov_views,
             }
             truth, no_truth = _truth_record(session.data.get("source"), prov_views, session.data.get("options"),
-                                            frame_ns=frame_ns)
+                                            frame_ns=frame_ns,
+                                            servo_tracks={p.record.name: (p.record.ground_truth or {}).get("servo_track")
+                                                          for p in plans})
             if truth is not None:
                 provenance["truth"] = truth
                 joint = _joint_record(session.servo, truth)
@@ -794,7 +796,7 @@ def _twin_frame_ns(session) -> int | None:
 
 
 def _truth_record(source: dict | None, views: dict, options: dict | None, *,
-                  frame_ns=None) -> tuple[dict | None, str]:
+                  frame_ns=None, servo_tracks: dict | None = None) -> tuple[dict | None, str]:
     """What evaluation needs to render the true scene (evdnerf_ros.eval.truth), or (None, why
     not; "" for a session that does not know its scene, e.g. a real capture). Two kinds of
     session know it: a simulated one (rendered at options.supersample) and one captured on the
@@ -805,7 +807,9 @@ def _truth_record(source: dict | None, views: dict, options: dict | None, *,
     The twin rendered only every ``frame_ns`` of its sensor clock (``rig.virtual.frame_ns``),
     joined linearly in log; with every view's ``ground_truth.sensor_zero_scene_ns`` that grid
     goes into the record as ``render_grid`` (period, and per view the scene time of a grid
-    point), so that the reference renders what the twin did."""
+    point), so that the reference renders what the twin did; so do the servo angles the twin
+    rendered (``servo_tracks``: per view ``ground_truth.servo_track``, scene time), where every
+    view has them."""
     source = source or {}
     kind = source.get("kind")
     if kind == "simulation":
@@ -838,6 +842,9 @@ def _truth_record(source: dict | None, views: dict, options: dict | None, *,
     if kind == "capture" and frame_ns and all(z is not None for z in zeros.values()):
         record["render_grid"] = {"period_ns": int(frame_ns),
                                  "scene_ns": {name: int(z) for name, z in zeros.items()}}
+    tracks = {name: (servo_tracks or {}).get(name) for name in views}
+    if kind == "capture" and all(tracks.values()):
+        record["servo_tracks"] = tracks
     return record, ""
 
 

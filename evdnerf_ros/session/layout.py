@@ -135,6 +135,22 @@ def check_session(root, data, *, path=None) -> Session:
 SIZE_MAX = 65535
 
 
+def _servo_track(track, where: Where) -> None:
+    """``{scene_ns: [...], deg: [...]}``: equal, non-empty lists, times increasing (the servo angles
+    the virtual rig's camera twin rendered over a view)."""
+    mapping(track, where, allowed=("scene_ns", "deg"), required=("scene_ns", "deg"))
+    times = sequence(track["scene_ns"], where / "scene_ns", min_len=1)
+    angles = sequence(track["deg"], where / "deg")
+    if len(angles) != len(times):
+        (where / "deg").fail(f"holds {len(angles)} angle{'s' * (len(angles) != 1)} for the {len(times)} "
+                             "times of scene_ns")
+    t = [number(v, where / "scene_ns" / i, integer=True, low=-T_LIMIT, high=T_LIMIT) for i, v in enumerate(times)]
+    for i, v in enumerate(angles):
+        number(v, where / "deg" / i, low=-360, high=360)
+    if any(b <= a for a, b in zip(t, t[1:])):
+        where.fail("scene_ns must increase")
+
+
 def _int_ns(sec: dict, key: str, where: Where, *, required: bool = False):
     return number_in(sec, key, where, required=required, integer=True, low=-T_LIMIT, high=T_LIMIT)
 
@@ -277,6 +293,8 @@ def _check_view(root: Path, v, where: Where, seen: set) -> ViewRecord:
             _int_ns(gt, k, where / "ground_truth")
         # chunks the virtual rig's camera twin rendered with stale joint angles (rig.camera.virtual)
         number_in(gt, "stale_renders", where / "ground_truth", required=False, integer=True, low=0, high=1e12)
+        if gt.get("servo_track") is not None:
+            _servo_track(gt["servo_track"], where / "ground_truth" / "servo_track")
     sync = mapping(v.get("sync"), where / "sync", optional=True)
     if sync is not None:
         _int_ns(sync, "offset_ns", where / "sync")
