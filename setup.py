@@ -37,6 +37,7 @@ setup(
         "test": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "mcap>=1.1",
                  "mcap-ros2-support>=0.5", "expelliarmus==1.1.12",
                  "evlib==0.13.2",  # peer codec and peer simulator in tests/benchmarks
+                 "faery==0.7.1",  # aestream's I/O library: peer RAW reader / writer (its `% t0` in us)
                  "neuromorphic-drivers>=0.18,<0.19",  # peer USB driver of the camera twins
                  "eclipse-zenoh>=1.0,<2"],  # Zenoh transport and its independent peer (tests/test_ros_zenoh.py)
         "zenoh": ["eclipse-zenoh>=1.0,<2"],  # RMW_IMPLEMENTATION=rmw_zenoh_cpp (evdnerf_ros.ros.zenoh_transport)

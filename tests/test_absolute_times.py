@@ -1,7 +1,8 @@
 """Absolute (epoch) event times through every container, and the RAW `% t0` header line.
 
 EVT 2.0 / 3.0 count sensor-clock microseconds: a RAW file written from epoch times keeps its
-sensor times near zero and puts the origin in a `% t0 <ns>` header line (io/raw.py), so its
+sensor times near zero and puts the origin in a `% t0 <us>` header line (io/raw.py; microseconds,
+as faery writes and reads it, with a `% t0_unit us` line), so its
 size follows the events, not the date. Every container gives the int64 ns times back exactly
 (EVT: times are whole microseconds, the formats' resolution).
 """
@@ -50,7 +51,8 @@ def test_raw_epoch_round_trip_is_exact_and_small(tmp_path, enc):
     # the origin: the first time rounded down to a TIME_HIGH boundary, in the header
     first = min(int(ev["t"][0]), int(tr["t"][0]))
     assert h.t0_ns == first // STEP_NS * STEP_NS and h.t0_ns % STEP_NS == 0
-    assert f"% t0 {h.t0_ns}\n" in p.read_bytes()[:h.header_bytes].decode()
+    assert f"% t0 {h.t0_ns // 1000}\n% t0_unit us\n" in p.read_bytes()[:h.header_bytes].decode()
+    assert h.t0_unit == "us"
     # the words hold sensor times below 4096 us at the start, without the origin
     data, _ = body(p)
     sensor = decode(data, enc)
@@ -144,13 +146,23 @@ EVT3_BODY = np.array([0x8001, 0x6002, 0x0003, 0x2804, 0xA101], "<u2").tobytes() 
 EVT2_BODY = np.array([0x80000040, 0x10802003, 0xA0800101], "<u4").tobytes()       # the same in EVT 2.0
 
 
+#: `% t0` in microseconds (faery's, and any file that does not say otherwise), in the unit a
+#: `% t0_unit` line names, and in nanoseconds in files this toolkit wrote before it wrote that line.
+T0_HEADERS = [("", 1000, "us"), ("% t0_unit us\n", 1000, "us"), ("% t0_unit ns\n", 1, "ns"),
+              ("% camera_integrator_name evdnerf_ros\n", 1, "ns"),
+              ("% camera_integrator_name evdnerf_ros\n% t0_unit us\n", 1000, "us"),
+              ("% camera_integrator_name Prophesee\n", 1000, "us")]
+
+
 @pytest.mark.parametrize("head, data", [(b"% evt 3.0\n", EVT3_BODY), (b"% format EVT2;width=8;height=8\n", EVT2_BODY)])
-@pytest.mark.parametrize("t0", [0, 1_700_000_000_000_000_000, -123_456_789, 7])
-def test_t0_header_line_is_honoured(tmp_path, head, data, t0):
+@pytest.mark.parametrize("t0_value", [0, 1_700_000_000_000_000, -123_456_789, 7])
+@pytest.mark.parametrize("lines, ns_per, unit", T0_HEADERS)
+def test_t0_header_line_is_honoured(tmp_path, head, data, t0_value, lines, ns_per, unit):
     p = tmp_path / "t0.raw"
-    p.write_bytes(head + f"% geometry 8x8\n% t0 {t0}\n% end\n".encode() + data)
+    p.write_bytes(head + f"% geometry 8x8\n{lines}% t0 {t0_value}\n% end\n".encode() + data)
     h = read_raw_header(p)
-    assert h.t0_ns == t0 and h.fields["t0"] == str(t0)
+    t0 = t0_value * ns_per
+    assert h.t0_ns == t0 and h.fields["t0"] == str(t0_value) and h.t0_unit == unit
     d, _ = read_raw(p)
     assert d.events.tolist() == [(t0 + 4098_000, 4, 3, 1)]
     assert d.triggers.tolist() == [(t0 + 4098_000, 1, 1)]
@@ -167,6 +179,50 @@ def test_bad_t0_header_line_is_refused_naming_the_file(tmp_path, value, match):
     with pytest.raises(FormatError, match=match) as ei:
         read_raw_header(p)
     assert str(p) in str(ei.value) and "% t0" in str(ei.value)
+
+
+def test_an_unknown_t0_unit_is_refused(tmp_path):
+    p = tmp_path / "unit.raw"
+    p.write_bytes(b"% evt 3.0\n% t0 5\n% t0_unit ms\n% end\n" + EVT3_BODY)
+    with pytest.raises(FormatError, match=r"'% t0_unit ms' is not us or ns") as ei:
+        read_raw_header(p)
+    assert str(p) in str(ei.value)
+
+
+
+def _faery():
+    return pytest.importorskip("faery", reason="faery (aestream's I/O library, a test dependency) is not installed")
+
+
+@pytest.mark.parametrize("version", ["evt3", "evt2"])
+def test_faery_and_this_toolkit_agree_on_t0(tmp_path, version):
+    """faery writes `% t0 <first event's us>` and reads it back; so do we, both ways."""
+    faery = _faery()
+    us = np.array([1605537493720000, 1605537493720100, 1605537493721000, 1605537493990017], np.uint64)
+    ev = np.zeros(us.size, faery.EVENTS_DTYPE)
+    ev["t"], ev["x"], ev["y"], ev["on"] = us, [1, 2, 3, 4], [5, 6, 7, 0], [True, False, True, False]
+    theirs = tmp_path / f"faery_{version}.raw"
+    faery.events_stream_from_array(ev, dimensions=(16, 16)).to_file(str(theirs), version=version)
+    h = read_raw_header(theirs)
+    assert (h.t0_ns, h.t0_unit) == (int(us[0]) * 1000, "us")
+    d, _ = read_raw(theirs)
+    assert d.events["t"].tolist() == [int(v) * 1000 for v in us]       # 1605537493.72 s, not 1605537.49
+    assert d.events["x"].tolist() == [1, 2, 3, 4] and d.events["p"].tolist() == [1, -1, 1, -1]
+    ours = tmp_path / f"ours_{version}.raw"
+    write_raw(ours, d.events, width=16, height=16, encoding=version)
+    assert read_raw_header(ours).t0_unit == "us"
+    back = np.concatenate([np.asarray(p["t"]) for p in faery.events_stream_from_file(str(ours))])
+    assert back.tolist() == us.tolist()
+
+
+def test_a_file_written_before_the_t0_unit_line_reads_in_nanoseconds(tmp_path):
+    """What this toolkit wrote before it wrote `% t0_unit`: its integrator name and `% t0 <ns>`."""
+    p = tmp_path / "old.raw"
+    p.write_bytes(b"% camera_integrator_name evdnerf_ros\n% evt 3.0\n% format EVT3;height=8;width=8\n"
+                  b"% geometry 8x8\n% t0 913715200000\n% end\n" + EVT3_BODY)
+    d, h = read_raw(p)
+    assert (h.t0_ns, h.t0_unit) == (913715200000, "ns")
+    assert d.events["t"].tolist() == [913715200000 + 4098_000]
 
 
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow,

@@ -18,9 +18,14 @@ from when the camera started streaming, not from the recording's start nor from 
 Its readers shift times by default so that they count from the file's first TIME_HIGH (less
 one 4096 us unit; RawFileConfig do_time_shifting_), which loses the sensor time; this module
 never shifts: a file's event times are t_ns = t0 + 1000 * sensor_us, where t0 is 0 unless
-the header has a line `% t0 <integer>`, an extension of this project: the time origin in
-int64 nanoseconds (RawHeader.t0_ns). OpenEB keeps header keys it does not know and ignores
-them, so its tools read such a file at its sensor times.
+the header has a line `% t0 <integer>`: the time origin in **microseconds**, as faery
+(aestream's I/O library) writes it (`% t0 <first event's us>`) and reads it back
+(RawHeader.t0_ns holds it in ns). This module writes `% t0 <us>` with a `% t0_unit us` line
+beside it. A file whose header names its unit (`% t0_unit us` or `ns`) is read in that unit;
+files written by this toolkit before it wrote `% t0_unit` said `% camera_integrator_name
+evdnerf_ros` and gave t0 in nanoseconds, and are read so; any other `% t0` is microseconds
+(RawHeader.t0_unit says which rule applied). OpenEB keeps header keys it does not know and
+ignores them, so its tools read such a file at its sensor times.
 
 write_raw keeps sensor times that lie in a sensor clock's first 2**24 us period (t0 = 0, no
 `% t0` line: what a camera writes reads back unchanged); any other first time (an epoch time,
@@ -64,7 +69,8 @@ _WRITE_CHUNK_EVENTS = 1 << 20
 @dataclass
 class RawHeader:
     """What a RAW file's text header says. width / height are None when it gives no geometry;
-    t0_ns is the time origin of its `% t0` line (0 without one): event t_ns = t0_ns + 1000 * us."""
+    t0_ns is the time origin of its `% t0` line (0 without one): event t_ns = t0_ns + 1000 * us;
+    t0_unit how that line was read (module doc): "us", "ns" or "" (no line)."""
 
     encoding: str
     width: int | None
@@ -72,6 +78,7 @@ class RawHeader:
     fields: dict[str, str] = field(default_factory=dict)
     header_bytes: int = 0
     t0_ns: int = 0
+    t0_unit: str = ""
 
 
 def _parse_header_bytes(read, source: str) -> tuple[dict[str, str], int]:
@@ -203,24 +210,41 @@ def _interpret(fields: dict[str, str], header_bytes: int, source: str) -> RawHea
             raise FormatError(f"'% geometry {geom}' is not WIDTHxHEIGHT", source=source)
         width = _positive_int(w, "geometry width", source) if width is None else width
         height = _positive_int(h, "geometry height", source) if height is None else height
-    return RawHeader(encoding, width, height, dict(fields), header_bytes,
-                     _t0_ns(_lookup(fields, "t0"), source))
+    t0_ns, t0_unit = _t0(fields, source)
+    return RawHeader(encoding, width, height, dict(fields), header_bytes, t0_ns, t0_unit)
 
 
-def _t0_ns(text: str | None, source: str) -> int:
-    """The `% t0` line's value: an integer number of nanoseconds (module doc)."""
+#: What this toolkit writes in `% camera_integrator_name`; with no `% t0_unit` line, such a file's
+#: `% t0` is in nanoseconds (written before the unit line existed).
+INTEGRATOR = "evdnerf_ros"
+_NS_PER = {"us": 1000, "ns": 1}
+
+
+def _t0(fields: dict[str, str], source: str) -> tuple[int, str]:
+    """(t0 in ns, the unit its `% t0` line was read in) from the header (module doc)."""
+    text = _lookup(fields, "t0")
     if text is None:
-        return 0
+        return 0, ""
+    unit = _lookup(fields, "t0_unit")
+    if unit is not None:
+        unit = unit.strip().lower()
+        if unit not in _NS_PER:
+            raise FormatError(f"'% t0_unit {unit}' is not us or ns: fix or remove the line (without it "
+                              "'% t0' is in microseconds, as faery writes it)", source=source)
+    else:
+        integrator = (_lookup(fields, "camera_integrator_name") or "").strip()
+        unit = "ns" if integrator == INTEGRATOR else "us"
     try:
         v = int(text.strip())
     except ValueError:
         raise FormatError(f"'% t0 {text}' is not an integer; the line gives the time origin in "
-                          "nanoseconds (e.g. '% t0 1700000000000000000'): fix or remove it",
-                          source=source) from None
-    if abs(v) >= TIME_BASE_LIMIT:
-        raise FormatError(f"'% t0 {text}' is out of range (|t0| < 2**62 ns, about 146 years): fix "
+                          f"{'microseconds' if unit == 'us' else 'nanoseconds'} (e.g. '% t0 1700000000000000'): "
+                          "fix or remove it", source=source) from None
+    t0_ns = v * _NS_PER[unit]
+    if abs(t0_ns) >= TIME_BASE_LIMIT:
+        raise FormatError(f"'% t0 {text}' ({unit}) is out of range (|t0| < 2**62 ns, about 146 years): fix "
                           "or remove the line", source=source)
-    return v
+    return t0_ns, unit
 
 
 # Pre-2021 RAW files have no geometry line; OpenEB infers the sensor size from the HAL
@@ -371,13 +395,13 @@ def _header_text(encoding: str, width: int, height: int, t0_ns: int) -> bytes:
     evt = "3.0" if encoding == "evt3" else "2.0"
     fmt = "EVT3" if encoding == "evt3" else "EVT2"
     lines = [
-        "% camera_integrator_name evdnerf_ros",
+        f"% camera_integrator_name {INTEGRATOR}",
         f"% evt {evt}",
         f"% format {fmt};height={height};width={width}",
         f"% geometry {width}x{height}",
     ]
     if t0_ns:
-        lines.append(f"% t0 {t0_ns}")
+        lines += [f"% t0 {t0_ns // 1000}", "% t0_unit us"]
     lines.append("% end")
     return ("\n".join(lines) + "\n").encode("ascii")
 
@@ -386,8 +410,8 @@ def write_raw(path, events, *, width: int, height: int, encoding: str = "evt3",
               triggers=None, t0_ns: int | None = None) -> None:
     """Write events (and triggers; int64 ns, whole microseconds) as an OpenEB RAW file.
 
-    The sensor times written are t - t0 in microseconds; t0 (ns) goes in a `% t0` header line
-    when it is not 0. By default (t0_ns=None) t0 is 0 when the first time lies in a sensor
+    The sensor times written are t - t0 in microseconds; t0 goes in a `% t0` header line, in
+    microseconds with a `% t0_unit us` line, when it is not 0 (whole microseconds). By default (t0_ns=None) t0 is 0 when the first time lies in a sensor
     clock's first 2**24 us, else that time rounded down to 4096 us, so the file's size follows
     the events, not the date (module doc). An explicit t0_ns must not be after the first time.
 
@@ -417,6 +441,9 @@ def write_raw(path, events, *, width: int, height: int, encoding: str = "evt3",
         if first is not None and first < t0:
             raise InputError(f"{path}: t0_ns={t0} is after the first event or trigger (t={first} ns); "
                              "the time origin must be at or before it (or leave t0_ns=None)")
+        if t0 % 1000:
+            raise InputError(f"{path}: t0_ns={t0} is not whole microseconds (the `% t0` line is in "
+                             "microseconds); round it, or leave t0_ns=None")
     events = check_events_for_us(events, t0, name)
     for axis, limit in (("x", int(width)), ("y", int(height))):
         col = events[axis]
