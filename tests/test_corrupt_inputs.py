@@ -194,7 +194,7 @@ def test_event_times_spanning_ages_are_sized_first(tmp_path, capsys):
 def _h5_events(path, n=50, edit=None):
     ev = events(n)
     with h5py.File(path, "w") as f:
-        f.attrs.update(width=W, height=H)
+        f.attrs.update(width=W, height=H, layout="evdnerf_ros.events", time_unit="ns")   # as ours are
         g = f.create_group("events")
         for k in ("t", "x", "y", "p"):
             g.create_dataset(k, data=ev[k], maxshape=(None,), chunks=(64,))

@@ -13,7 +13,9 @@ from ..errors import EvdnerfError
 
 TOPIC_HELP = "event topic inside a bag (default /event_camera/events)"
 GEOMETRY_HELP = ("sensor size WxH of a RAW file whose header gives none (neither a geometry line nor a "
-                 "known plugin_name), e.g. 640x480")
+                 "known plugin_name), or of an HDF5 file without width / height attributes, e.g. 640x480")
+TIME_UNIT_HELP = ("unit of an HDF5 file's events/t when the file has no time_unit attribute: ns, us, ms or s "
+                  "(DSEC and v2e write us); never guessed")
 
 
 class _Parser(argparse.ArgumentParser):

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..errors import EvdnerfError
 from ..options import add_options, options_from_args
-from .common import GEOMETRY_HELP, TOPIC_HELP, geometry, number
+from .common import GEOMETRY_HELP, TIME_UNIT_HELP, TOPIC_HELP, geometry, number
 
 
 
@@ -22,7 +22,7 @@ def _cmd_convert_events(args) -> int:
     if args.repacketize or args.events_only:
         raise EvdnerfError("--repacketize and --events-only apply to bag -> bag conversions only (and not "
                            "with --out-topic)")
-    data = read_event_file(args.input, topic=args.topic, geometry=args.geometry)
+    data = read_event_file(args.input, topic=args.topic, geometry=args.geometry, time_unit=args.time_unit)
     out_topic = args.out_topic
     if out_topic is None and container_kind(args.output) in ("rosbag1", "rosbag2"):
         out_topic = args.topic  # keep the input's topic name when writing a bag
@@ -67,7 +67,7 @@ def _cmd_salvage_bag(args) -> int:
 def _cmd_info(args) -> int:
     from ..io.info import describe
 
-    info = describe(args.input, topic=args.topic)
+    info = describe(args.input, topic=args.topic, time_unit=args.time_unit, geometry=args.geometry)
     if args.json:
         print(json.dumps(info, indent=2))
     else:
@@ -96,7 +96,7 @@ def _cmd_render_events(args) -> int:
     # Outputs are checked before the input is read: nothing is decoded for an unwritable path.
     for path in (output, rate_path) if args.rate else (output,):
         check_output(path, overwrite=args.overwrite)
-    data = read_event_file(args.input, topic=args.topic, geometry=args.geometry)
+    data = read_event_file(args.input, topic=args.topic, geometry=args.geometry, time_unit=args.time_unit)
     ev = data.events
     if ev.size == 0:
         raise EvdnerfError(f"{args.input}: holds no events; nothing to render")
@@ -128,6 +128,8 @@ def _duration(text: str) -> int:
 
 
 def register(sub) -> None:
+    from ..io.h5events import TIME_UNITS
+
     p = sub.add_parser("convert-events", help="convert events between RAW, npz, h5 and bags",
                        description="Convert an event file. The container follows the path: "
                                    ".raw (EVT 3.0 / 2.0 by header), .npz (t int64 ns, x, y, p "
@@ -143,6 +145,7 @@ def register(sub) -> None:
                         "array for ROS 1)")
     p.add_argument("--topic", help=TOPIC_HELP)
     p.add_argument("--geometry", type=geometry, metavar="WxH", help=GEOMETRY_HELP)
+    p.add_argument("--time-unit", choices=TIME_UNITS, help=TIME_UNIT_HELP)
     p.add_argument("--out-topic", help="topic in the output bag (default: same as --topic)")
     p.add_argument("--storage", choices=["mcap", "sqlite3"],
                    help="rosbag2 storage plugin for a directory output (default mcap)")
@@ -185,6 +188,8 @@ def register(sub) -> None:
     p.add_argument("input")
     p.add_argument("--topic", help=TOPIC_HELP)
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.add_argument("--geometry", type=geometry, metavar="WxH", help=GEOMETRY_HELP)
+    p.add_argument("--time-unit", choices=TIME_UNITS, help=TIME_UNIT_HELP)
     p.set_defaults(func=_cmd_info)
 
     p = sub.add_parser("render-events", help="draw an event image of one time window",
@@ -206,6 +211,7 @@ def register(sub) -> None:
     p.add_argument("--rate-bin", default="1ms", help="rate histogram bin (default %(default)s)")
     p.add_argument("--topic", help=TOPIC_HELP)
     p.add_argument("--geometry", type=geometry, metavar="WxH", help=GEOMETRY_HELP)
+    p.add_argument("--time-unit", choices=TIME_UNITS, help=TIME_UNIT_HELP)
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing PNG files at the output paths (never a folder)")
     p.set_defaults(func=_cmd_render_events)

@@ -61,16 +61,20 @@ def container_kind(path) -> str:
 
 
 def read_event_file(path, *, topic: str | None = None, need_geometry: bool = True,
-                    geometry: tuple[int, int] | None = None) -> EventFile:
+                    geometry: tuple[int, int] | None = None, time_unit: str | None = None) -> EventFile:
     """Read any container (see the module doc). A RAW file whose header gives no geometry (and
-    no plugin_name it follows from) takes `geometry` (W, H, the CLI's --geometry WxH); without
-    it, it is refused unless `need_geometry` is False (width / height are then None)."""
+    no plugin_name it follows from), or an HDF5 file without width / height attributes, takes
+    `geometry` (W, H, the CLI's --geometry WxH); without it, such a RAW file is refused unless
+    `need_geometry` is False (width / height are then None). An HDF5 file whose times do not
+    say their unit takes `time_unit` (the CLI's --time-unit; see h5events.py)."""
     path = Path(path)
     kind = container_kind(path)
     if not path.exists():
         raise InputError(f"{path}: no such file or directory")
     if kind != "rosbag2" and kind != "rosbag1" and topic is not None:
         raise InputError(f"{path}: --topic applies only to bags, not to {kind} files")
+    if time_unit is not None and kind != "h5":
+        raise InputError(f"{path}: --time-unit applies only to HDF5 files (a {kind} file carries its own unit)")
     if kind in ("raw", "npz", "h5") and path.is_dir():
         raise InputError(f"{path}: is a folder, not a {kind} file")
     if kind == "raw":
@@ -100,7 +104,7 @@ def read_event_file(path, *, topic: str | None = None, need_geometry: bool = Tru
     if kind == "h5":
         from .h5events import read_h5
 
-        return EventFile(*read_h5(path), kind)
+        return EventFile(*read_h5(path, time_unit=time_unit, geometry=geometry), kind)
     from .bag_reader import pick_event_topic, read_events
 
     stream = read_events(path, topic=pick_event_topic(path, topic))

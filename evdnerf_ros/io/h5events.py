@@ -1,6 +1,14 @@
 """Events as HDF5 (h5py): datasets events/{t,x,y,p} (int64 ns, uint16, uint16, int8 +1/-1),
 attributes width and height, optional triggers/{t,id,value}; chunked and compressed.
 
+Reading other writers' files (DSEC's and v2e's `events/{t,x,y,p}`): the time unit is never
+guessed. A `time_unit` attribute (on events/t, the events group or the file; ns, us, ms or s;
+this module writes `time_unit: ns` on the file) is honoured; a file without one needs
+``time_unit`` (the CLI's ``--time-unit``), and is refused with that hint (DSEC and v2e store
+microseconds). Polarity +1/-1, or in other writers' files 0/1 (DSEC's: 1 = ON; no file mixes
+the two). A file without
+width / height attributes takes ``geometry`` (the CLI's ``--geometry WxH``).
+
 Reading checks the layout (ranks, dtypes, lengths, attributes) before reading anything and
 the declared sizes against the memory budget; a damaged file is a FormatError naming it.
 Writing goes through evdnerf_ros.io.guard, so a full disk ends in one error naming the output.
@@ -21,7 +29,7 @@ from ..limits import check_memory
 from .guard import h5_close, h5_create, h5_dataset, h5_memory, h5_number, h5_open, h5_reading
 
 CHUNK = 1 << 18
-LAYOUT_VERSION = 1
+LAYOUT, LAYOUT_VERSION = "evdnerf_ros.events", 1
 
 
 def write_h5(path, events, width: int, height: int, triggers=None, *, overwrite=False) -> None:
@@ -44,7 +52,7 @@ def write_h5(path, events, width: int, height: int, triggers=None, *, overwrite=
 
 
 def _write_layout(f, events, width, height, triggers) -> None:
-    f.attrs.update(width=int(width), height=int(height), layout="evdnerf_ros.events",
+    f.attrs.update(width=int(width), height=int(height), layout=LAYOUT,
                    layout_version=LAYOUT_VERSION, time_unit="ns")
     g = f.create_group("events")
     for name in ("t", "x", "y", "p"):
@@ -79,15 +87,57 @@ def _columns(f, group: str, names, path) -> list:
     return cols
 
 
-def read_h5(path):
-    """Return (events, triggers, width, height)."""
+#: ns per unit of the time units a file's `time_unit` attribute (or --time-unit) may name.
+TIME_UNITS = {"ns": 1, "us": 1_000, "ms": 1_000_000, "s": 1_000_000_000}
+_UNIT_SPELLINGS = {"µs": "us", "μs": "us", "microseconds": "us", "nanoseconds": "ns", "milliseconds": "ms",
+                   "seconds": "s"}
+
+
+def time_unit_name(text: str, what: str) -> str:
+    """A time unit as one of TIME_UNITS (``what`` names where it came from in the error)."""
+    unit = _UNIT_SPELLINGS.get(str(text).strip().lower(), str(text).strip().lower())
+    if unit not in TIME_UNITS:
+        raise InputError(f"{what}: time unit {text!r} is not one of {', '.join(TIME_UNITS)}")
+    return unit
+
+
+def _file_time_unit(f, path) -> str | None:
+    """The `time_unit` attribute of events/t, the events group or the file (the first found)."""
+    from .guard import h5_text
+
+    for holder in (f["events"]["t"], f["events"], f):
+        if "time_unit" in holder.attrs:
+            return time_unit_name(h5_text(holder.attrs, "time_unit", path), f"{path}: attribute time_unit")
+    return None
+
+
+def read_h5(path, *, time_unit: str | None = None, geometry: tuple[int, int] | None = None):
+    """Return (events, triggers, width, height); ``time_unit`` / ``geometry`` for files that do
+    not say (module doc)."""
     f = h5_open(path)
     with f, h5_reading(path):
         if "events" not in f or not all(k in f["events"] for k in ("t", "x", "y", "p")):
             raise InputError(f"{path}: no events/{{t,x,y,p}} datasets; this reader expects the "
                              "layout written by `evdnerf convert-events` (see docs/formats.md)")
-        width = h5_number(f.attrs, "width", path, low=1, high=65535, integer=True)
-        height = h5_number(f.attrs, "height", path, low=1, high=65535, integer=True)
+        said = _file_time_unit(f, path)
+        given = None if time_unit is None else time_unit_name(time_unit, "--time-unit")
+        if said is not None and given is not None and said != given:
+            raise InputError(f"{path}: its time_unit attribute says {said}, --time-unit says {given}; drop "
+                             "--time-unit (the file's own unit is used)")
+        unit = said or given
+        ours = f.attrs.get("layout") == LAYOUT       # our own files hold +1/-1 only
+        if unit is None:
+            raise InputError(f"{path}: events/t has no time_unit attribute, so its unit is unknown (DSEC and "
+                             "v2e write microseconds, this toolkit nanoseconds with time_unit: ns); give it "
+                             f"with --time-unit {'|'.join(TIME_UNITS)}")
+        if "width" in f.attrs or "height" in f.attrs or geometry is None:
+            if "width" not in f.attrs and "height" not in f.attrs:
+                raise InputError(f"{path}: no width / height attributes (the sensor size); give it with "
+                                 "--geometry WxH (DSEC's cameras: 640x480)")
+            width = h5_number(f.attrs, "width", path, low=1, high=65535, integer=True)
+            height = h5_number(f.attrs, "height", path, low=1, high=65535, integer=True)
+        else:
+            width, height = (int(v) for v in geometry)
         cols = _columns(f, "events", ("t", "x", "y", "p"), path)
         n = cols[0].shape[0]
         h5_memory(2 * n * EVENT_DTYPE.itemsize, path, f"{n} events")
@@ -98,13 +148,25 @@ def read_h5(path):
             tt, tid, tv = (c[()] for c in tcols)
     if t.dtype == np.uint64 and n and int(t.max()) >= 2**63:
         raise FormatError("events/t holds values beyond int64 nanoseconds", source=str(path))
+    scale = TIME_UNITS[unit]
+    if scale != 1:
+        limit = (2**63 - 1) // scale
+        if n and (int(t.max()) > limit or int(t.min()) < -limit):
+            raise FormatError(f"events/t in {unit} reaches beyond int64 nanoseconds; check --time-unit",
+                              source=str(path))
+        if tcols and tt.size and (int(tt.max()) > limit or int(tt.min()) < -limit):
+            raise FormatError(f"triggers/t in {unit} reaches beyond int64 nanoseconds; check --time-unit",
+                              source=str(path))
+        t = t.astype(np.int64) * scale
+    if not ours and p.size and not np.any(p < 0) and np.any(p == 0):
+        p = np.where(p > 0, 1, -1).astype(np.int8)       # 0/1 polarity (DSEC's): 1 = ON
     for name, v, limit in (("x", x, width), ("y", y, height)):
         if v.size and (int(v.min()) < 0 or int(v.max()) >= limit):
             raise FormatError(f"events/{name} lies outside the declared {width}x{height} geometry "
                               f"(range {v.min()}..{v.max()}); fix the width/height attributes or the data",
                               source=str(path))
     if p.size and not np.all((p == 1) | (p == -1)):
-        raise FormatError(f"events/p must hold +1/-1 (found {np.unique(p)[:5].tolist()})", source=str(path))
+        raise FormatError(f"events/p must hold +1/-1 or 0/1 (found {np.unique(p)[:5].tolist()})", source=str(path))
     events = make_events(t.astype(np.int64), x, y, p)
     triggers = empty_triggers()
     if tcols:
@@ -112,7 +174,7 @@ def read_h5(path):
                         or np.any((tv != 0) & (tv != 1)) or np.any(tt[1:] < tt[:-1])):
             raise FormatError("triggers/{t,id,value} out of range (sorted int64 ns >= 0, ids 0..255, "
                               "values 0/1)", source=str(path))
-        triggers = make_triggers(tt.astype(np.int64), tid, tv)
+        triggers = make_triggers(tt.astype(np.int64) * scale, tid, tv)
     validate_events(events, width=width, height=height, source=str(path))
     return events, triggers, width, height
 

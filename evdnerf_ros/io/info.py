@@ -11,7 +11,8 @@ from .event_files import DEFAULT_TOPIC, container_kind, read_event_file
 EVENT_TYPES = ("event_camera_msgs/msg/EventPacket", "dvs_msgs/msg/EventArray")
 
 
-def describe(path, *, topic: str | None = None) -> dict:
+def describe(path, *, topic: str | None = None, time_unit: str | None = None,
+             geometry: tuple[int, int] | None = None) -> dict:
     """A JSON-ready summary: container, topics (bags), and the event stream's statistics."""
     path = Path(path)
     kind = container_kind(path)
@@ -31,7 +32,7 @@ def describe(path, *, topic: str | None = None) -> dict:
         elif topic not in bag.topics:
             raise InputError(f"{path}: no topic {topic!r}; topics: "
                              f"{', '.join(bag.topics) or 'none'}")
-    data = read_event_file(path, topic=topic, need_geometry=False)
+    data = read_event_file(path, topic=topic, need_geometry=False, time_unit=time_unit, geometry=geometry)
     ev = data.events
     n = int(ev.size)
     duration = int(ev["t"][-1] - ev["t"][0]) if n > 1 else 0
