@@ -3,6 +3,7 @@ the reference values their projects test against). Skipped where that folder is 
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -95,6 +96,25 @@ def test_evt3_trigger_bag_matches_event_camera_codecs():
     assert int((ev["t"] - off).sum()) == 1_222_326_831_810_000
     assert (int(ev["x"].sum()), int(ev["y"].sum()), int((ev["p"] > 0).sum())) == (42_078_718, 31_656_267, 41_439)
     assert (int((tr["t"] - off).sum()), int(tr["value"].sum()), int(tr["id"].sum())) == (29_096_982_000, 1, 0)
+
+
+def test_the_pre_2023_event_array_msgs_bag_reads_as_event_camera_codecs_does(tmp_path, capsys):
+    """`event_array_msgs/msg/EventArray`, EventPacket's name before the rename (mono encoding):
+    read, listed by `info` with its events and converted; the codec's own test's sums."""
+    from evdnerf_ros.cli import main
+    from evdnerf_ros.io.bag_reader import read_events
+
+    path = _need(REAL / "event_camera_codecs" / "test_data_mono_cd")
+    s = read_events(path, BAG_TOPIC)
+    ev = s.events
+    assert (int(ev["t"].sum()), int(ev["x"].sum()), int(ev["y"].sum()), int((ev["p"] > 0).sum())) == \
+        (4_950_000, 34_450, 26_450, 50)
+    assert main(["info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["topics"][0]["type"] == "event_array_msgs/msg/EventArray" and info["events"]["count"] == 100
+    out = tmp_path / "events.npz"
+    assert main(["convert-events", str(path), str(out)]) == 0
+    assert np.array_equal(read_event_file(out).events, ev)
 
 
 def _payloads(path):

@@ -7,8 +7,8 @@ from pathlib import Path
 from ..errors import InputError
 from ..units import format_ns
 from .event_files import DEFAULT_TOPIC, container_kind, read_event_file
+from .packetizer import EVENT_TYPES
 
-EVENT_TYPES = ("event_camera_msgs/msg/EventPacket", "dvs_msgs/msg/EventArray")
 
 
 def describe(path, *, topic: str | None = None, time_unit: str | None = None,

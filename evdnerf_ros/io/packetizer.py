@@ -64,7 +64,7 @@ from ..errors import EvdnerfError, InputError
 from ..topics import EVENTS
 from ..events.types import MAX_SENSOR_SIZE, as_events, empty_triggers, validate_events
 from . import event_messages as em
-from .typestore import DVS_EVENT_ARRAY, EVENT_PACKET
+from .typestore import DVS_EVENT_ARRAY, EVENT_PACKET, LEGACY_EVENT_PACKET
 
 PACKET_ENCODINGS = ("evt3", "evt2", "mono", "libcaer", "libcaer_cmp")
 WRITE_ENCODINGS = PACKET_ENCODINGS + ("array",)
@@ -74,7 +74,8 @@ CAER_ENCODINGS = ("libcaer", "libcaer_cmp")
 WORD_BYTES = {"evt3": 2, "evt2": 4, "mono": 8, "libcaer": 8, "libcaer_cmp": 2}
 DEFAULT_EVENT_TOPIC = EVENTS
 DEFAULT_PACKET_NS = 1_000_000
-EVENT_TYPES = (EVENT_PACKET, DVS_EVENT_ARRAY)
+#: the event message types read (EventPacket also under its pre-2023 name); written: the first two
+EVENT_TYPES = (EVENT_PACKET, DVS_EVENT_ARRAY, LEGACY_EVENT_PACKET)
 
 #: sink(topic, msgtype, serialised message bytes, t_ns)
 Sink = Callable[[str, str, bytes, int], Any]

@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from .bag_reader import TopicDecoder, open_bag, pick_event_topic
 from .packetizer import DEFAULT_PACKET_NS, STREAM_ENCODINGS
-from .typestore import EVENT_PACKET
+from .typestore import EVENT_PACKET, LEGACY_EVENT_PACKET
 
 
 def _writer_for(dst: Path, storage: str | None):
@@ -77,7 +77,7 @@ def reencode_bag(src, dst, *, encoding: str | None = None, storage: str | None =
                         n_msg += _repack(writer, topic, held, encoding, packet_ns)
                         held = []
                     continue
-                seq = pk.seq if (m.msgtype == EVENT_PACKET or bag.ros1) else None
+                seq = pk.seq if (m.msgtype in (EVENT_PACKET, LEGACY_EVENT_PACKET) or bag.ros1) else None
                 n_msg += writer.write_packet(topic, pk.events, triggers=pk.triggers, width=pk.width,
                                              height=pk.height, encoding=encoding, stamp_ns=pk.stamp_ns,
                                              seq=seq, frame_id=pk.frame_id, t_ns=m.t_ns)

@@ -23,6 +23,9 @@ from rosbags.typesys.store import Typestore
 MSG_DIR = files(__package__) / "msg"
 
 EVENT_PACKET = "event_camera_msgs/msg/EventPacket"
+#: EventPacket's name before event_camera_msgs (2023): the same fields in the same order, what every
+#: metavision_driver / libcaer_driver bag recorded before the rename holds; read as EventPacket.
+LEGACY_EVENT_PACKET = "event_array_msgs/msg/EventArray"
 DVS_EVENT = "dvs_msgs/msg/Event"
 DVS_EVENT_ARRAY = "dvs_msgs/msg/EventArray"
 
