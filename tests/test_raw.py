@@ -126,14 +126,33 @@ def test_header_only_file(tmp_path):
     assert list(iter_raw(p)) == []
 
 
-def test_truncated_body_names_file_offset(tmp_path):
+def test_a_file_cut_mid_word_keeps_every_complete_word(tmp_path, capsys):
+    """As a killed recording ends: the complete words are read, with one warning naming the byte
+    offset; strict (--strict) refuses the file instead, naming the offset too."""
+    from evdnerf_ros.cli import main
+    from evdnerf_ros.events.codecs._common import TruncatedStreamWarning
+
     head = b"% format EVT3;width=8;height=8\n% end\n"
+    whole = put(tmp_path, "whole.raw", head + EVT3_BODY)
     p = put(tmp_path, "trunc.raw", head + EVT3_BODY + b"\x00")
+    want, _ = read_raw(whole)
+    with pytest.warns(TruncatedStreamWarning, match=f"trunc.raw: ends inside a 2-byte EVT 3.0 word at byte "
+                                                   f"{len(head) + len(EVT3_BODY)} \\(1 byte"):
+        got, _ = read_raw(p)
+    assert np.array_equal(got.events, want.events) and got.events.size
+    with pytest.warns(TruncatedStreamWarning):
+        assert np.array_equal(np.concatenate([d.events for d in iter_raw(p)]), want.events)
     with pytest.raises(FormatError, match="truncated") as ei:
-        read_raw(p)
+        read_raw(p, strict=True)
     assert ei.value.offset == len(head) + len(EVT3_BODY)
     with pytest.raises(FormatError):
-        list(iter_raw(p))
+        list(iter_raw(p, strict=True))
+    out = tmp_path / "o.npz"
+    assert main(["convert-events", str(p), str(out)]) == 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "trunc.raw: ends inside" in err and f"byte {len(head) + len(EVT3_BODY)}" in err
+    assert main(["convert-events", str(p), str(tmp_path / "s.npz"), "--strict"]) == 2
+    assert "truncated" in capsys.readouterr().err and not (tmp_path / "s.npz").exists()
 
 
 def test_corrupt_word_offset_is_a_file_offset(tmp_path):

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..errors import EvdnerfError
 from ..options import add_options, options_from_args
-from .common import GEOMETRY_HELP, TIME_UNIT_HELP, TOPIC_HELP, geometry, number
+from .common import GEOMETRY_HELP, STRICT_HELP, TIME_UNIT_HELP, TOPIC_HELP, geometry, number
 
 
 
@@ -22,7 +22,8 @@ def _cmd_convert_events(args) -> int:
     if args.repacketize or args.events_only:
         raise EvdnerfError("--repacketize and --events-only apply to bag -> bag conversions only (and not "
                            "with --out-topic)")
-    data = read_event_file(args.input, topic=args.topic, geometry=args.geometry, time_unit=args.time_unit)
+    data = read_event_file(args.input, topic=args.topic, geometry=args.geometry, time_unit=args.time_unit,
+                           strict=args.strict)
     out_topic = args.out_topic
     if out_topic is None and container_kind(args.output) in ("rosbag1", "rosbag2"):
         out_topic = args.topic  # keep the input's topic name when writing a bag
@@ -67,7 +68,8 @@ def _cmd_salvage_bag(args) -> int:
 def _cmd_info(args) -> int:
     from ..io.info import describe
 
-    info = describe(args.input, topic=args.topic, time_unit=args.time_unit, geometry=args.geometry)
+    info = describe(args.input, topic=args.topic, time_unit=args.time_unit, geometry=args.geometry,
+                    strict=args.strict)
     if args.json:
         print(json.dumps(info, indent=2))
     else:
@@ -96,7 +98,8 @@ def _cmd_render_events(args) -> int:
     # Outputs are checked before the input is read: nothing is decoded for an unwritable path.
     for path in (output, rate_path) if args.rate else (output,):
         check_output(path, overwrite=args.overwrite)
-    data = read_event_file(args.input, topic=args.topic, geometry=args.geometry, time_unit=args.time_unit)
+    data = read_event_file(args.input, topic=args.topic, geometry=args.geometry, time_unit=args.time_unit,
+                           strict=args.strict)
     ev = data.events
     if ev.size == 0:
         raise EvdnerfError(f"{args.input}: holds no events; nothing to render")
@@ -146,6 +149,7 @@ def register(sub) -> None:
     p.add_argument("--topic", help=TOPIC_HELP)
     p.add_argument("--geometry", type=geometry, metavar="WxH", help=GEOMETRY_HELP)
     p.add_argument("--time-unit", choices=TIME_UNITS, help=TIME_UNIT_HELP)
+    p.add_argument("--strict", action="store_true", help=STRICT_HELP)
     p.add_argument("--out-topic", help="topic in the output bag (default: same as --topic)")
     p.add_argument("--storage", choices=["mcap", "sqlite3"],
                    help="rosbag2 storage plugin for a directory output (default mcap)")
@@ -190,6 +194,7 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.add_argument("--geometry", type=geometry, metavar="WxH", help=GEOMETRY_HELP)
     p.add_argument("--time-unit", choices=TIME_UNITS, help=TIME_UNIT_HELP)
+    p.add_argument("--strict", action="store_true", help=STRICT_HELP)
     p.set_defaults(func=_cmd_info)
 
     p = sub.add_parser("render-events", help="draw an event image of one time window",
@@ -212,6 +217,7 @@ def register(sub) -> None:
     p.add_argument("--topic", help=TOPIC_HELP)
     p.add_argument("--geometry", type=geometry, metavar="WxH", help=GEOMETRY_HELP)
     p.add_argument("--time-unit", choices=TIME_UNITS, help=TIME_UNIT_HELP)
+    p.add_argument("--strict", action="store_true", help=STRICT_HELP)
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing PNG files at the output paths (never a folder)")
     p.set_defaults(func=_cmd_render_events)

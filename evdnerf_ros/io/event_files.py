@@ -61,12 +61,14 @@ def container_kind(path) -> str:
 
 
 def read_event_file(path, *, topic: str | None = None, need_geometry: bool = True,
-                    geometry: tuple[int, int] | None = None, time_unit: str | None = None) -> EventFile:
+                    geometry: tuple[int, int] | None = None, time_unit: str | None = None,
+                    strict: bool = False) -> EventFile:
     """Read any container (see the module doc). A RAW file whose header gives no geometry (and
     no plugin_name it follows from), or an HDF5 file without width / height attributes, takes
     `geometry` (W, H, the CLI's --geometry WxH); without it, such a RAW file is refused unless
     `need_geometry` is False (width / height are then None). An HDF5 file whose times do not
-    say their unit takes `time_unit` (the CLI's --time-unit; see h5events.py)."""
+    say their unit takes `time_unit` (the CLI's --time-unit; see h5events.py). A RAW file cut
+    inside its last word reads its complete words with a warning; `strict` (--strict) refuses it."""
     path = Path(path)
     kind = container_kind(path)
     if not path.exists():
@@ -85,7 +87,7 @@ def read_event_file(path, *, topic: str | None = None, need_geometry: bool = Tru
             raise FormatError("the RAW header gives no sensor geometry; give it with --geometry WxH "
                               "(or add a header line '% geometry WIDTHxHEIGHT' before '% end')",
                               source=str(path))
-        decoded, header = read_raw(path)
+        decoded, header = read_raw(path, strict=strict)
         if geometry is not None and (header.width is None or header.height is None):
             header = replace(header, width=int(geometry[0]), height=int(geometry[1]))
         ev = decoded.events

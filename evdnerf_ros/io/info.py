@@ -12,7 +12,7 @@ from .packetizer import EVENT_TYPES
 
 
 def describe(path, *, topic: str | None = None, time_unit: str | None = None,
-             geometry: tuple[int, int] | None = None) -> dict:
+             geometry: tuple[int, int] | None = None, strict: bool = False) -> dict:
     """A JSON-ready summary: container, topics (bags), and the event stream's statistics."""
     path = Path(path)
     kind = container_kind(path)
@@ -32,7 +32,8 @@ def describe(path, *, topic: str | None = None, time_unit: str | None = None,
         elif topic not in bag.topics:
             raise InputError(f"{path}: no topic {topic!r}; topics: "
                              f"{', '.join(bag.topics) or 'none'}")
-    data = read_event_file(path, topic=topic, need_geometry=False, time_unit=time_unit, geometry=geometry)
+    data = read_event_file(path, topic=topic, need_geometry=False, time_unit=time_unit, geometry=geometry,
+                           strict=strict)
     ev = data.events
     n = int(ev.size)
     duration = int(ev["t"][-1] - ev["t"][0]) if n > 1 else 0

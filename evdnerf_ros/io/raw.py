@@ -315,7 +315,7 @@ def _read_body(path, header_bytes: int, piece: int, source: str, on_piece=None) 
     return body
 
 
-def read_raw(path, *, chunk_bytes: int = 64 << 20, time_low_carry: bool = False
+def read_raw(path, *, chunk_bytes: int = 64 << 20, time_low_carry: bool = False, strict: bool = False
              ) -> tuple[Decoded, RawHeader]:
     """Decode a whole RAW file; returns (Decoded, RawHeader). Times: t_ns = t0 + 1000 * sensor
     us, t0 from the header's `% t0` line (0 without one; see the module doc).
@@ -324,7 +324,9 @@ def read_raw(path, *, chunk_bytes: int = 64 << 20, time_low_carry: bool = False
     in cache), then streamed through the decoder in `chunk_bytes` pieces straight into one
     event array of that size, so no partial results are concatenated. For bounded memory use
     iter_raw(). `time_low_carry` (EVT 3.0) reads files whose writer omitted TIME_HIGH words
-    (expelliarmus). Errors name the file and the absolute byte offset.
+    (expelliarmus). Errors name the file and the absolute byte offset. A file cut inside its last
+    word (a killed recording) gives every complete word with a TruncatedStreamWarning naming the
+    offset; ``strict`` refuses it instead.
     """
     header = read_raw_header(path)
     chunk = _chunk_size(chunk_bytes)
@@ -361,18 +363,18 @@ def read_raw(path, *, chunk_bytes: int = 64 << 20, time_low_carry: bool = False
         if tr.size:
             trigs.append(tr)
     del body
-    dec.close()
+    dec.close(strict=strict)
     if pos < total:
         out = out[:pos].copy() if pos < total // 2 else out[:pos]
     return Decoded(out, concat_triggers(trigs), getattr(dec, "time_anomalies", {})), header
 
 
-def iter_raw(path, *, chunk_bytes: int = 16 << 20, time_low_carry: bool = False
+def iter_raw(path, *, chunk_bytes: int = 16 << 20, time_low_carry: bool = False, strict: bool = False
              ) -> Iterator[Decoded]:
     """Yield the events of a RAW file chunk by chunk (memory bounded by `chunk_bytes`).
 
-    Chunks that decode to nothing are skipped; a truncated last word raises FormatError at
-    the end.
+    Chunks that decode to nothing are skipped; a truncated last word is dropped with a warning at
+    the end (``strict``: raises FormatError), as read_raw.
     """
     header = read_raw_header(path)
     chunk = _chunk_size(chunk_bytes)
@@ -388,7 +390,7 @@ def iter_raw(path, *, chunk_bytes: int = 16 << 20, time_low_carry: bool = False
             part = dec.feed(buf[:n])
             if part.events.size or part.triggers.size:
                 yield part
-    dec.close()
+    dec.close(strict=strict)
 
 
 def _header_text(encoding: str, width: int, height: int, t0_ns: int) -> bytes:

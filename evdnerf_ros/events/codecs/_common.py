@@ -28,6 +28,10 @@ class DroppedEventsWarning(UserWarning):
     """Events or triggers were discarded because the stream gave no valid time (or row) yet."""
 
 
+class TruncatedStreamWarning(UserWarning):
+    """A file ended inside a word (a recording killed mid-write): every complete word was read."""
+
+
 @dataclass
 class Decoded:
     """Result of decoding a byte stream: events (EVENT_DTYPE) and external triggers (TRIGGER_DTYPE)."""
@@ -410,15 +414,23 @@ class StreamDecoderBase(abc.ABC):
             drop_warning(self.source, d_ev, d_tr, self.DROP_REASON)
         return k, trig
 
-    def close(self) -> Decoded:
-        """End of stream: raises FormatError if a partial word is left over."""
+    def close(self, *, strict: bool = True) -> Decoded:
+        """End of stream. A partial word left over raises FormatError (``strict``) or, for a file
+        cut mid-word as a killed recording ends, is dropped with a TruncatedStreamWarning naming
+        its byte offset (every complete word was decoded)."""
         if self._closed:
             return Decoded()
         self._closed = True
         if self._rest.size:
+            if not strict:
+                warnings.warn(f"{self.source}: ends inside a {self.WORD}-byte {self.NAME} word at byte {self._offset} "
+                              f"({self._rest.size} byte(s) dropped; every complete word was read): the recording "
+                              "was cut", TruncatedStreamWarning, stacklevel=3)
+                return Decoded()
             raise FormatError(
                 f"{self._rest.size} dangling byte(s) at the end: {self.NAME} words are {self.WORD} "
-                "bytes, so the stream or file is probably truncated; cut it at a word boundary",
+                "bytes, so the stream or file is probably truncated; cut it at a word boundary "
+                "(without --strict, a file's complete words are read)",
                 source=self.source, offset=self._offset)
         return Decoded()
 
