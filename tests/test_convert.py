@@ -290,6 +290,38 @@ def test_hand_made_session_converts(tmp_path):
             assert np.array_equal(ts.events(name), ev)
 
 
+def test_one_view_converts_without_sync(tmp_path, capsys):
+    """A recording imported as one view: its time origin is its first event, or --origin; a
+    session of more views still needs sync, and --origin is refused there."""
+    from evdnerf_ros.cli import main
+
+    s = make_session(tmp_path / "s", [{"name": "a", "offset": 5_000_000_000}])
+    data = yaml.safe_load((s / "session.yaml").read_text())
+    del data["views"][0]["sync"]
+    (s / "session.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    ev = read_events(s / "a").events
+    first = int(ev["t"][0])
+    out = tmp_path / "o.h5"
+    lines = []
+    run_convert(s, out, window=(0, 200_000_000), log=lines.append)
+    assert any("one view, no sync needed" in line and f"{first} ns" in line and "first event" in line
+               for line in lines), lines
+    with TrainingSet(out) as ts:
+        want = ev.copy()
+        want["t"] -= first
+        assert np.array_equal(ts.events("a"), want[want["t"] < 200_000_000])
+    assert main(["convert", str(s), "-o", str(tmp_path / "p.h5"), "--origin", f"{first + 10_000_000}ns",
+                 "--start", "0", "--end", "100ms"]) == 0
+    capsys.readouterr()
+    with TrainingSet(tmp_path / "p.h5") as ts:
+        want = ev.copy()
+        want["t"] -= first + 10_000_000
+        assert np.array_equal(ts.events("a"), want[(want["t"] >= 0) & (want["t"] < 100_000_000)])
+    two = make_session(tmp_path / "two", [{"name": "a", "offset": 1}, {"name": "b", "offset": 2}])
+    with pytest.raises(InputError, match="--origin sets the time origin of a single-view session"):
+        run_convert(two, tmp_path / "q.h5", origin=0, **QUIET)
+
+
 def test_views_of_different_resolutions(tmp_path):
     s = make_session(tmp_path / "s", [{"name": "a", "offset": 10**9},
                                       {"name": "b", "offset": 10**9, "size": (64, 48)}])

@@ -233,6 +233,13 @@ def test_no_onset_names_the_view_and_saves_its_rate_plot(jet, tmp_path):
     assert plot.stat().st_size > 0
     assert (s / "session.yaml").read_bytes() == yaml_before      # nothing else written
     assert not (s / "sync.png").exists()
+    assert "sync this view by trigger/START" in str(exc.value)
+    # the same view alone: a session of one view needs no sync, and the message says so
+    data = yaml.safe_load(yaml_before)
+    data["views"] = [v for v in data["views"] if v["name"] == "view_01"]
+    (s / "session.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(InputError, match=r"needs no sync: `evdnerf convert .*` takes its first event as t = 0"):
+        run_sync(s, **QUIET)
 
 
 def test_static_view_is_fine_when_a_better_source_exists(fork, tmp_path):

@@ -118,6 +118,10 @@ class ConvertOptions:
     # "sync" | "ground-truth" | (library only) {view: offset_ns}
     offsets: str | Mapping = option("sync", "clock offsets from `evdnerf sync` or, for simulated sessions, the "
                                             "injected ground truth", choices=OFFSET_SOURCES)
+    origin: int | None = option(None, "a single-view session without a sync record: its time origin (t = 0) "
+                                      "in the view's own clock (e.g. '1675956551250000000ns')",
+                                kind=int, duration=True,
+                                low=-2**62, high=2**62, none_help="its first event")
     poses: str = option("auto", "camera poses from session.yaml (static) or the pose topic (moving camera)",
                         choices=POSE_SOURCES)
     intrinsics: str = option("camera_info", "intrinsics from each bag's CameraInfo (checked against "
@@ -152,10 +156,23 @@ class ConvertOptions:
 # =========================================================================== pieces
 
 
-def resolve_offsets(session: Session, offsets="sync") -> tuple[dict[str, int], str]:
-    """{view name: offset_ns} (t_common = t_view - offset_ns) and where they came from."""
+def resolve_offsets(session: Session, offsets="sync", *, origin: int | None = None,
+                    topic: str = EVENTS) -> tuple[dict[str, int], str]:
+    """{view name: offset_ns} (t_common = t_view - offset_ns) and where they came from. A session
+    of one view needs no sync: its origin is ``origin`` (in its own clock) or its first event on
+    ``topic``."""
     root = session.root
     out: dict[str, int] = {}
+    one = len(session.views) == 1 and not isinstance(session.views[0].sync, Mapping)
+    if origin is not None and not (offsets == "sync" and one):
+        raise InputError("convert: --origin sets the time origin of a single-view session without a sync record; "
+                         f"{root} has {len(session.views)} view(s)"
+                         + ("" if len(session.views) != 1 else " and a sync record (or other --offsets)"))
+    if offsets == "sync" and one:
+        v = session.views[0]
+        if origin is not None:
+            return {v.name: int(origin)}, "--origin"
+        return {v.name: _first_event_ns(v.bag, topic)}, "first event"
     if isinstance(offsets, Mapping):
         for v in session.views:
             if v.name not in offsets:
@@ -186,6 +203,16 @@ def resolve_offsets(session: Session, offsets="sync") -> tuple[dict[str, int], s
         out[v.name] = _as_int_ns(gt["clock_offset_ns"], f"view {v.name}: ground_truth.clock_offset_ns") \
             + _as_int_ns(motion_start, "time.motion_start_ns")
     return out, "ground-truth"
+
+
+def _first_event_ns(bag, topic: str) -> int:
+    """The time of a bag's first event on ``topic`` (reading message by message until one has events)."""
+    from ..io.bag_reader import iter_event_packets
+
+    for packet in iter_event_packets(bag, topic):
+        if packet.events.size:
+            return int(packet.events["t"][0])
+    raise InputError(f"convert: {bag}: topic {topic} holds no events; nothing to convert")
 
 
 def _as_int_ns(value, what) -> int:
@@ -504,8 +531,11 @@ def convert_session(session_dir, out, options: ConvertOptions = ConvertOptions()
     session = load_session(session_dir)
     root = session.root
     frame_ns = _twin_frame_ns(session)             # checked before any work
-    offsets, offsets_source = resolve_offsets(session, options.offsets)
     topics = _topics(session, options)
+    offsets, offsets_source = resolve_offsets(session, options.offsets, origin=options.origin, topic=topics["events"])
+    if offsets_source in ("--origin", "first event"):
+        (name, origin), = offsets.items()
+        log(f"  {name}: one view, no sync needed: time origin {origin} ns of its clock ({offsets_source})")
     s = options.downsample
     crop = _check_crop(options.crop, session.width, session.height)
     W0, H0 = (session.width, session.height) if crop is None else crop[2:]

@@ -249,12 +249,15 @@ def _rate_plot_path(root: Path, name: str) -> Path:
     return root / f"sync_rate_{name}.png"
 
 
-def _no_onset(root: Path, vd: ViewData, bin_ns: int, why: str) -> InputError:
+def _no_onset(root: Path, vd: ViewData, bin_ns: int, why: str, *, views: int = 2) -> InputError:
     path = plot_event_rate(_rate_plot_path(root, vd.name), {vd.name: (vd.edges, vd.counts)},
                            title=f"{vd.name}: event rate (no motion onset found)")
+    fix = (f"a session of one view needs no sync: `evdnerf convert {root}` takes its first event as t = 0 "
+           "(or --origin)" if views == 1 else "check that the camera saw the motion, or sync this view by "
+           "trigger/START")
     return InputError(f"sync: no motion onset found in view {vd.name} ({why}): {vd.onset_reason}; "
                       f"its event-rate plot ({bin_ns} ns bins) is saved at {path}; nothing else was "
-                      "written. Check that the camera saw the motion, or sync this view by trigger/START")
+                      f"written. {fix[0].upper() + fix[1:]}")
 
 
 def _usable(vd: ViewData, method: str) -> bool:
@@ -302,7 +305,7 @@ def sync_session(root, options: SyncOptions = SyncOptions(), *, log=None) -> Syn
         if vd.onset is None:
             why = (f"method {options.method}" if options.method != "auto"
                    else "no trigger edge and no START message either")
-            raise _no_onset(root, vd, options.bin_ns, why)
+            raise _no_onset(root, vd, options.bin_ns, why, views=len(views))
 
     # Sub-bin refinement against the reference view.
     if options.refine and ref.onset is not None:
@@ -341,8 +344,12 @@ def sync_session(root, options: SyncOptions = SyncOptions(), *, log=None) -> Syn
                                  "--method onset")
             if not _usable(vd, m):
                 have = [k for k in ESTIMATE_KEYS if vd.estimates.get(k) is not None]
+                works = [k for k in ("trigger", "start", "rate", "onset") if _usable(vd, k)
+                         and (k != "rate" or options.refine)]
                 raise InputError(f"sync: view {vd.name} has no {m} estimate (available: "
-                                 f"{', '.join(have) or 'none'}); use --method auto")
+                                 f"{', '.join(have) or 'none'}); use "
+                                 + (f"--method {works[0]}" if works else "another recording: no method has an "
+                                    "estimate for this view"))
         chosen[vd.name] = m
 
     # Refer every offset to the same instant: correct methods by their median bias against the
