@@ -69,7 +69,7 @@ def test_bad_units_polarities_and_overflow_are_clear_errors(tmp_path):
         read_event_file(p)
     raw = tmp_path / "x.raw"
     raw.write_bytes(b"% evt 3.0\n% geometry 8x8\n% end\n")
-    with pytest.raises(InputError, match="--time-unit applies only to HDF5 files"):
+    with pytest.raises(InputError, match="--time-unit applies only to HDF5 and text files"):
         read_event_file(raw, time_unit="us")
 
 

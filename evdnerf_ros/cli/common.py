@@ -13,11 +13,12 @@ from ..errors import EvdnerfError
 
 TOPIC_HELP = "event topic inside a bag (default /event_camera/events)"
 GEOMETRY_HELP = ("sensor size WxH of a RAW file whose header gives none (neither a geometry line nor a "
-                 "known plugin_name), or of an HDF5 file without width / height attributes, e.g. 640x480")
+                 "known plugin_name), of an HDF5 file without width / height attributes, or of a text file, "
+                 "e.g. 640x480")
 STRICT_HELP = ("refuse a RAW file that ends inside a word (default: read its complete words, with a warning "
                "naming the byte offset, as a killed recording ends)")
-TIME_UNIT_HELP = ("unit of an HDF5 file's events/t when the file has no time_unit attribute: ns, us, ms or s "
-                  "(DSEC and v2e write us); never guessed")
+TIME_UNIT_HELP = ("unit of an HDF5 file's events/t when the file has no time_unit attribute, or of a text "
+                  "file's whole-number times: ns, us, ms or s (DSEC and v2e write us); never guessed")
 
 
 class _Parser(argparse.ArgumentParser):

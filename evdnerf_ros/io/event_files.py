@@ -5,6 +5,7 @@
 | `*.raw`                  | OpenEB RAW (EVT 3.0 or EVT 2.0, told by its header)     |
 | `*.npz`                  | numpy arrays t, x, y, p + width, height                 |
 | `*.h5`, `*.hdf5`         | HDF5 events/{t,x,y,p} (see h5events.py)                |
+| `*.txt`                  | text `t x y p` per line, read only (see text.py)       |
 | `*.bag`                  | ROS 1 bag, dvs_msgs/EventArray                          |
 | directory, `*.mcap`, `*.db3` | rosbag2 (MCAP or sqlite3), EventPacket or EventArray |
 
@@ -52,11 +53,13 @@ def container_kind(path) -> str:
         return "npz"
     if suffix in (".h5", ".hdf5"):
         return "h5"
+    if suffix == ".txt":
+        return "text"
     if suffix == ".bag":
         return "rosbag1"
     if suffix in (".mcap", ".db3") or suffix == "" or path.is_dir():
         return "rosbag2"
-    raise InputError(f"{path}: unknown event file type {suffix!r}; use .raw, .npz, .h5, .bag, "
+    raise InputError(f"{path}: unknown event file type {suffix!r}; use .raw, .npz, .h5, .txt, .bag, "
                      ".mcap, .db3 or a rosbag2 directory")
 
 
@@ -75,8 +78,9 @@ def read_event_file(path, *, topic: str | None = None, need_geometry: bool = Tru
         raise InputError(f"{path}: no such file or directory")
     if kind != "rosbag2" and kind != "rosbag1" and topic is not None:
         raise InputError(f"{path}: --topic applies only to bags, not to {kind} files")
-    if time_unit is not None and kind != "h5":
-        raise InputError(f"{path}: --time-unit applies only to HDF5 files (a {kind} file carries its own unit)")
+    if time_unit is not None and kind not in ("h5", "text"):
+        raise InputError(f"{path}: --time-unit applies only to HDF5 and text files (a {kind} file carries its "
+                         "own unit)")
     if kind in ("raw", "npz", "h5") and path.is_dir():
         raise InputError(f"{path}: is a folder, not a {kind} file")
     if kind == "raw":
@@ -107,6 +111,13 @@ def read_event_file(path, *, topic: str | None = None, need_geometry: bool = Tru
         from .h5events import read_h5
 
         return EventFile(*read_h5(path, time_unit=time_unit, geometry=geometry), kind)
+    if kind == "text":
+        from .text import read_text
+
+        events, width, height = read_text(path, time_unit=time_unit, geometry=geometry)
+        if width is None and need_geometry:
+            raise InputError(f"{path}: a text event file gives no sensor size; give it with --geometry WxH")
+        return EventFile(events, empty_triggers(), width, height, kind)
     from .bag_reader import pick_event_topic, read_events
 
     stream = read_events(path, topic=pick_event_topic(path, topic))
@@ -120,6 +131,8 @@ def write_event_file(path, data: EventFile, *, encoding: str | None = None,
     """Write `data` to `path` (container from the path); returns the encoding used."""
     path = Path(path)
     kind = container_kind(path)
+    if kind == "text":
+        raise InputError(f"{path}: text event files are read only; write .npz, .h5, .raw or a bag")
     if kind in ("raw", "rosbag1", "rosbag2") and encoding is None:
         encoding = {"raw": "evt3", "rosbag1": "array", "rosbag2": "evt3"}[kind]
     allowed = {"raw": RAW_ENCODINGS, "rosbag1": ("array",), "rosbag2": BAG_ENCODINGS}.get(kind)

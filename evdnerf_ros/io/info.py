@@ -68,7 +68,8 @@ def format_info(info: dict) -> str:
         lines.append(head + ":")
         lines.append(f"    count       {ev['count']} ({ev['positive']} positive), "
                      f"{ev['triggers']} trigger events")
-        lines.append(f"    resolution  {ev['width']}x{ev['height']}")
+        lines.append(f"    resolution  {ev['width']}x{ev['height']}" if ev["width"] is not None
+                     else "    resolution  unknown (the file gives none: --geometry WxH)")
         if ev["count"]:
             lines.append(f"    time        {format_ns(ev['t_first_ns'])} .. "
                          f"{format_ns(ev['t_last_ns'])} (duration {format_ns(ev['duration_ns'])})")

@@ -1,0 +1,75 @@
+"""Text event files `t x y p` (the RPG Event Camera Dataset's events.txt; io/text.py): times parsed
+exactly, the unit never guessed, the real events_viz chunk read to its reference values."""
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evdnerf_ros.cli import main
+from evdnerf_ros.errors import FormatError, InputError
+from evdnerf_ros.io.event_files import read_event_file, write_event_file
+
+REAL = Path(os.environ.get("EVDNERF_REAL_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"))
+CHUNK = REAL / "events_viz" / "events_chunk.txt"
+
+
+def _text(tmp_path, body: str, name="e.txt"):
+    p = tmp_path / name
+    p.write_text(body)
+    return p
+
+
+@pytest.mark.skipif(not CHUNK.is_file(), reason=f"real recordings not found at {REAL}")
+def test_the_rpg_chunk_reads_to_its_reference_values():
+    d = read_event_file(CHUNK, geometry=(240, 180))
+    ev = d.events
+    assert ev.size == 50_000 and int((ev["p"] > 0).sum()) == 21_147
+    assert (int(ev["t"][0]), int(ev["t"][-1])) == (3_811_000, 174_156_000)
+    assert int((ev["t"] % 1000 != 0).sum()) == 25_376          # nanosecond digits kept exactly
+    assert int(ev["x"].max()) < 240 and int(ev["y"].max()) < 180
+
+
+def test_seconds_with_nanosecond_digits_are_exact(tmp_path):
+    p = _text(tmp_path, "# t x y p\n0.003820001 1 2 0\n1.5 3 4 1\n1605537493.123456789 0 0 1\n")
+    d = read_event_file(p, geometry=(8, 8))
+    assert d.events["t"].tolist() == [3_820_001, 1_500_000_000, 1_605_537_493_123_456_789]
+    assert d.events["p"].tolist() == [-1, 1, 1] and d.width == 8
+
+
+def test_whole_number_times_need_a_unit(tmp_path):
+    p = _text(tmp_path, "1000 1 2 1\n1250 3 4 -1\n")
+    with pytest.raises(InputError, match=r"e\.txt: the times are whole numbers.*--time-unit"):
+        read_event_file(p, geometry=(8, 8))
+    assert read_event_file(p, geometry=(8, 8), time_unit="us").events["t"].tolist() == [1_000_000, 1_250_000]
+    assert read_event_file(p, geometry=(8, 8), time_unit="ns").events["t"].tolist() == [1000, 1250]
+
+
+@pytest.mark.parametrize("body, error, match", [
+    ("0.0000000001 1 2 1\n", FormatError, "finer than a nanosecond"),
+    ("0.1 1 2 0\n0.2 1 2 -1\n", FormatError, "mixes 0 and -1"),
+    ("0.1 1 2 7\n", FormatError, "polarity must be 0/1 or -1/\\+1"),
+    ("0.1 1 2\n", FormatError, "not a text event file"),
+    ("-0.1 1 2 1\n", FormatError, "negative times"),
+    ("0.2 1 2 1\n0.1 1 2 1\n", InputError, "timestamps not sorted"),
+    ("0.1 9 2 1\n", InputError, "x=9 outside the declared 8x8 geometry"),
+])
+def test_bad_text_is_one_clear_error(tmp_path, body, error, match):
+    with pytest.raises((FormatError, InputError), match=match) as ei:
+        read_event_file(_text(tmp_path, body), geometry=(8, 8))
+    assert "e.txt" in str(ei.value)
+
+
+def test_the_cli_reads_text_and_never_writes_it(tmp_path, capsys):
+    p = _text(tmp_path, "0.001 1 2 1\n0.002 3 4 0\n")
+    assert main(["convert-events", str(p), str(tmp_path / "o.npz")]) == 2
+    assert "--geometry" in capsys.readouterr().err
+    assert main(["convert-events", str(p), str(tmp_path / "o.npz"), "--geometry", "8x8"]) == 0
+    capsys.readouterr()
+    assert read_event_file(tmp_path / "o.npz").events["t"].tolist() == [1_000_000, 2_000_000]
+    assert main(["info", str(p)]) == 0
+    out = capsys.readouterr().out
+    assert "count       2" in out and "resolution  unknown" in out
+    with pytest.raises(InputError, match="read only"):
+        write_event_file(tmp_path / "back.txt", read_event_file(tmp_path / "o.npz"))
