@@ -6,6 +6,7 @@
 | `*.npz`                  | numpy arrays t, x, y, p + width, height                 |
 | `*.h5`, `*.hdf5`         | HDF5 events/{t,x,y,p} (see h5events.py)                |
 | `*.txt`                  | text `t x y p` per line, read only (see text.py)       |
+| `*.bin`                  | N-MNIST / N-Caltech101 ATIS, read only (atis_bin.py)   |
 | `*.bag`                  | ROS 1 bag, dvs_msgs/EventArray                          |
 | directory, `*.mcap`, `*.db3` | rosbag2 (MCAP or sqlite3), EventPacket or EventArray |
 
@@ -28,6 +29,8 @@ from ..events.types import empty_triggers
 DEFAULT_TOPIC = EVENTS
 BAG_ENCODINGS = ("evt3", "mono", "array")
 RAW_ENCODINGS = ("evt3", "evt2")
+#: containers read but never written, and what they are called in messages
+READ_ONLY = {"text": "text event file", "atis": "N-MNIST-style .bin file"}
 
 
 @dataclass
@@ -55,11 +58,13 @@ def container_kind(path) -> str:
         return "h5"
     if suffix == ".txt":
         return "text"
+    if suffix == ".bin":
+        return "atis"
     if suffix == ".bag":
         return "rosbag1"
     if suffix in (".mcap", ".db3") or suffix == "" or path.is_dir():
         return "rosbag2"
-    raise InputError(f"{path}: unknown event file type {suffix!r}; use .raw, .npz, .h5, .txt, .bag, "
+    raise InputError(f"{path}: unknown event file type {suffix!r}; use .raw, .npz, .h5, .txt, .bin, .bag, "
                      ".mcap, .db3 or a rosbag2 directory")
 
 
@@ -111,12 +116,17 @@ def read_event_file(path, *, topic: str | None = None, need_geometry: bool = Tru
         from .h5events import read_h5
 
         return EventFile(*read_h5(path, time_unit=time_unit, geometry=geometry), kind)
-    if kind == "text":
-        from .text import read_text
+    if kind in READ_ONLY:
+        if kind == "text":
+            from .text import read_text
 
-        events, width, height = read_text(path, time_unit=time_unit, geometry=geometry)
+            events, width, height = read_text(path, time_unit=time_unit, geometry=geometry)
+        else:
+            from .atis_bin import read_atis_bin
+
+            events, width, height = read_atis_bin(path, geometry=geometry)
         if width is None and need_geometry:
-            raise InputError(f"{path}: a text event file gives no sensor size; give it with --geometry WxH")
+            raise InputError(f"{path}: a {READ_ONLY[kind]} gives no sensor size; give it with --geometry WxH")
         return EventFile(events, empty_triggers(), width, height, kind)
     from .bag_reader import pick_event_topic, read_events
 
@@ -131,8 +141,8 @@ def write_event_file(path, data: EventFile, *, encoding: str | None = None,
     """Write `data` to `path` (container from the path); returns the encoding used."""
     path = Path(path)
     kind = container_kind(path)
-    if kind == "text":
-        raise InputError(f"{path}: text event files are read only; write .npz, .h5, .raw or a bag")
+    if kind in READ_ONLY:
+        raise InputError(f"{path}: {READ_ONLY[kind]}s are read only; write .npz, .h5, .raw or a bag")
     if kind in ("raw", "rosbag1", "rosbag2") and encoding is None:
         encoding = {"raw": "evt3", "rosbag1": "array", "rosbag2": "evt3"}[kind]
     allowed = {"raw": RAW_ENCODINGS, "rosbag1": ("array",), "rosbag2": BAG_ENCODINGS}.get(kind)

@@ -1,5 +1,6 @@
-"""Text event files `t x y p` (the RPG Event Camera Dataset's events.txt; io/text.py): times parsed
-exactly, the unit never guessed, the real events_viz chunk read to its reference values."""
+"""Event files read but never written: text `t x y p` (the RPG Event Camera Dataset's events.txt;
+io/text.py: times parsed exactly, the unit never guessed) and N-MNIST-style ATIS .bin
+(io/atis_bin.py); the real events_viz chunk and N-MNIST sample read to their reference values."""
 
 import os
 from pathlib import Path
@@ -71,5 +72,34 @@ def test_the_cli_reads_text_and_never_writes_it(tmp_path, capsys):
     assert main(["info", str(p)]) == 0
     out = capsys.readouterr().out
     assert "count       2" in out and "resolution  unknown" in out
-    with pytest.raises(InputError, match="read only"):
+    with pytest.raises(InputError, match="text event files are read only"):
         write_event_file(tmp_path / "back.txt", read_event_file(tmp_path / "o.npz"))
+
+
+NMNIST = REAL / "tonic" / "sample_nmnist.bin"
+
+
+@pytest.mark.skipif(not NMNIST.is_file(), reason=f"real recordings not found at {REAL}")
+def test_the_nmnist_sample_reads_to_its_reference_values(tmp_path):
+    d = read_event_file(NMNIST, geometry=(34, 34))
+    ev = d.events
+    assert ev.size == 4325 and int((ev["p"] > 0).sum()) == 2145
+    assert (int(ev["t"][0]), int(ev["t"][-1])) == (654_000, 311_175_000)
+    assert int(ev["x"].max()) < 34 and int(ev["y"].max()) < 34
+
+
+def test_atis_bin_overflow_records_and_damage(tmp_path):
+    """A y = 240 record adds 2**13 us to every later time; a size that is not whole records is refused."""
+    def rec(x, y, p, t):
+        w = (p << 23) | t
+        return bytes([x, y, w >> 16 & 0xFF, w >> 8 & 0xFF, w & 0xFF])
+
+    p = tmp_path / "s.bin"
+    p.write_bytes(rec(1, 2, 1, 100) + rec(0, 240, 0, 0) + rec(3, 4, 0, 50))
+    d = read_event_file(p, geometry=(34, 34))
+    assert d.events["t"].tolist() == [100_000, (8192 + 50) * 1000] and d.events["p"].tolist() == [1, -1]
+    p.write_bytes(rec(1, 2, 1, 100) + b"\x00\x01")
+    with pytest.raises(FormatError, match=r"s\.bin: 7 bytes is not a whole number of 5-byte events"):
+        read_event_file(p, geometry=(34, 34))
+    with pytest.raises(InputError, match="N-MNIST-style .bin files are read only"):
+        write_event_file(tmp_path / "o.bin", read_event_file(_text(tmp_path, "0.1 1 1 1\n"), geometry=(8, 8)))
