@@ -84,7 +84,8 @@ def test_convert_errors_are_one_line_exit_2(tmp_path, npz_input, capsys):
         ([str(src), str(tmp_path / "x.raw"), "--encoding", "mono"], "not available for raw"),
         ([str(src), str(tmp_path / "x.npz"), "--encoding", "evt3"], "does not apply"),
         ([str(tmp_path / "missing.raw"), str(tmp_path / "y.npz")], "missing.raw: no such file"),
-        ([str(src), str(tmp_path / "x.txt")], "unknown event file type"),
+        ([str(src), str(tmp_path / "x.csv")], "unknown event file type"),
+        ([str(src), str(tmp_path / "x.txt")], "text event files are read only"),
     ]
     for args, message in cases:
         capsys.readouterr()
