@@ -103,3 +103,32 @@ def test_atis_bin_overflow_records_and_damage(tmp_path):
         read_event_file(p, geometry=(34, 34))
     with pytest.raises(InputError, match="N-MNIST-style .bin files are read only"):
         write_event_file(tmp_path / "o.bin", read_event_file(_text(tmp_path, "0.1 1 1 1\n"), geometry=(8, 8)))
+
+
+AEDAT4 = REAL / "tonic" / "sample.aedat4"
+
+
+@pytest.mark.skipif(not AEDAT4.is_file(), reason=f"real recordings not found at {REAL}")
+def test_the_dvxplorer_aedat4_reads_to_its_reference_values(tmp_path):
+    """Three independent readers agree on this file (the `aedat` package, faery, dv-processing)."""
+    from evdnerf_ros.io.aedat4 import read_aedat4
+
+    d = read_event_file(AEDAT4)
+    ev = d.events
+    assert (d.width, d.height, ev.size, int((ev["p"] > 0).sum())) == (320, 240, 111_954, 55_023)
+    assert (int(ev["t"][0]), int(ev["t"][-1])) == (1_605_537_493_718_345_000, 1_605_537_494_308_262_000)
+    *_, contents = read_aedat4(AEDAT4)
+    assert contents.imu_samples == 475 and set(contents.streams.values()) >= {"events", "imus"}
+    faery = pytest.importorskip("faery", reason="faery (a test dependency) is not installed")
+    theirs = np.concatenate([np.asarray(p) for p in faery.events_stream_from_file(str(AEDAT4))])
+    assert np.array_equal(theirs["t"].astype(np.int64) * 1000, ev["t"])
+    assert np.array_equal(theirs["x"], ev["x"]) and np.array_equal(np.where(theirs["on"], 1, -1), ev["p"])
+    cut = tmp_path / "cut.aedat4"
+    cut.write_bytes(AEDAT4.read_bytes()[: AEDAT4.stat().st_size // 2])
+    with pytest.raises((FormatError, InputError)) as ei:
+        read_event_file(cut)
+    assert "cut.aedat4" in str(ei.value)
+    junk = tmp_path / "junk.aedat4"
+    junk.write_bytes(b"not an aedat file at all")
+    with pytest.raises(FormatError, match="not a readable AEDAT 4.0 file"):
+        read_event_file(junk)

@@ -7,6 +7,7 @@
 | `*.h5`, `*.hdf5`         | HDF5 events/{t,x,y,p} (see h5events.py)                |
 | `*.txt`                  | text `t x y p` per line, read only (see text.py)       |
 | `*.bin`                  | N-MNIST / N-Caltech101 ATIS, read only (atis_bin.py)   |
+| `*.aedat4`               | AEDAT 4.0 (iniVation DV), read only (aedat4.py)        |
 | `*.bag`                  | ROS 1 bag, dvs_msgs/EventArray                          |
 | directory, `*.mcap`, `*.db3` | rosbag2 (MCAP or sqlite3), EventPacket or EventArray |
 
@@ -30,7 +31,7 @@ DEFAULT_TOPIC = EVENTS
 BAG_ENCODINGS = ("evt3", "mono", "array")
 RAW_ENCODINGS = ("evt3", "evt2")
 #: containers read but never written, and what they are called in messages
-READ_ONLY = {"text": "text event file", "atis": "N-MNIST-style .bin file"}
+READ_ONLY = {"text": "text event file", "atis": "N-MNIST-style .bin file", "aedat4": "AEDAT 4.0 file"}
 
 
 @dataclass
@@ -60,11 +61,13 @@ def container_kind(path) -> str:
         return "text"
     if suffix == ".bin":
         return "atis"
+    if suffix == ".aedat4":
+        return "aedat4"
     if suffix == ".bag":
         return "rosbag1"
     if suffix in (".mcap", ".db3") or suffix == "" or path.is_dir():
         return "rosbag2"
-    raise InputError(f"{path}: unknown event file type {suffix!r}; use .raw, .npz, .h5, .txt, .bin, .bag, "
+    raise InputError(f"{path}: unknown event file type {suffix!r}; use .raw, .npz, .h5, .txt, .bin, .aedat4, .bag, "
                      ".mcap, .db3 or a rosbag2 directory")
 
 
@@ -117,7 +120,12 @@ def read_event_file(path, *, topic: str | None = None, need_geometry: bool = Tru
 
         return EventFile(*read_h5(path, time_unit=time_unit, geometry=geometry), kind)
     if kind in READ_ONLY:
-        if kind == "text":
+        triggers = empty_triggers()
+        if kind == "aedat4":
+            from .aedat4 import read_aedat4
+
+            events, triggers, width, height, _ = read_aedat4(path)
+        elif kind == "text":
             from .text import read_text
 
             events, width, height = read_text(path, time_unit=time_unit, geometry=geometry)
@@ -127,7 +135,7 @@ def read_event_file(path, *, topic: str | None = None, need_geometry: bool = Tru
             events, width, height = read_atis_bin(path, geometry=geometry)
         if width is None and need_geometry:
             raise InputError(f"{path}: a {READ_ONLY[kind]} gives no sensor size; give it with --geometry WxH")
-        return EventFile(events, empty_triggers(), width, height, kind)
+        return EventFile(events, triggers, width, height, kind)
     from .bag_reader import pick_event_topic, read_events
 
     stream = read_events(path, topic=pick_event_topic(path, topic))
