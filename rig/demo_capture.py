@@ -65,9 +65,9 @@ VIEWS, VAL_EVERY = 25, 3
 #: The twin's pixels made more sensitive, as a user lowers an EVK4's thresholds for a low-contrast
 #: scene (offsets from the factory biases, at the edge of OpenEB's recommended range): contrast
 #: thresholds 0.141 instead of 0.2 (the bias model's e-fold of 100 steps), 1.6x the events. Measured
-#: on the demo's capture, the true scene's lead over the all-zero floor on the weakest validation
-#: view (pooled per view): 5.5 / 4.2 dB at 32 / 128 windows, against 3.3 / 2.75 dB at the factory
-#: biases (docs/results.md).
+#: on the demo's capture (the truth on the stored profile, before ``servo_track``), the true
+#: scene's lead over the all-zero floor on the weakest validation view (pooled per view): 5.5 /
+#: 4.2 dB at 32 / 128 windows, against 3.3 / 2.75 dB at the factory biases (docs/results.md).
 BIASES = {"bias_diff_on": -35, "bias_diff_off": -35}
 #: The capture test's short moves: the demo's time goes to training, not to waiting.
 CAPTURE = CaptureOptions(views=VIEWS, val_every=VAL_EVERY, turn_ms=300, home_ms=300, pre_roll_s=0.1,

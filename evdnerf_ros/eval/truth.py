@@ -21,9 +21,9 @@ demo's 48x36 fork its squared error against the events, as a multiple of the flo
 from 1.2x to 0.5x at 128 windows, from 3.1-3.4x to 0.55-0.64x at 256).  Its servo followed
 the firmware's 50 Hz commands as they reached it, joined linearly; where the record has them
 (``servo_tracks``: per view, scene times and degrees) the reference's servo follows them too,
-not the stored profile (the firmware in simavr is paced by the wall clock: on a busy machine
-one view's commands lagged its trigger by about 72 ms, and the profile-driven reference scored
-4 dB below the floor there).  A session that knows its scene but
+not the stored profile (the firmware in simavr is paced by the wall clock: in one capture one
+view's motion reached the twin about 72 ms late, and the profile-driven reference scored 4 dB
+below the floor there).  A session that knows its scene but
 not every view's time in it gets ``truth_note`` instead (why not), which :meth:`TrueScene.of`
 reports.
 """
