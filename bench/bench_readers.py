@@ -12,6 +12,8 @@ files of ../shared/data/real/ (skipped where absent), interleaved in one process
   numpy.loadtxt as float64 seconds rounded to ns (right on this file's small times; at epoch
   magnitudes float64 seconds resolve only ~0.2 us).
 - N-MNIST `.bin` (`tonic/sample_nmnist.bin`): ours (the reference values are checked).
+- Prophesee DAT (`expelliarmus/dat_sample.dat`, N-CARS): ours against expelliarmus' reader
+  (faery refuses this file's `2d` type).
 
 Per file: median and minimum seconds, events per second, and whether the reader matched the
 reference. Writes bench/results/readers.{json,png}.
@@ -59,6 +61,14 @@ def cases() -> dict:
             return e.size, int(e["on"].sum()), int(e["t"][0]) * 1000, int(e["t"][-1]) * 1000
         return run
 
+    def expelliarmus_dat(path):
+        def run():
+            from expelliarmus import Wizard
+
+            e = Wizard(encoding="dat").read(str(path))
+            return e.size, int((e["p"] > 0).sum()), int(e["t"][0]) * 1000, int(e["t"][-1]) * 1000
+        return run
+
     def loadtxt(path):
         def run():
             a = np.loadtxt(path)
@@ -68,6 +78,7 @@ def cases() -> dict:
 
     aedat4, raw = REAL / "tonic" / "sample.aedat4", REAL / "expelliarmus" / "evt3_sample.raw"
     text, nmnist = REAL / "events_viz" / "events_chunk.txt", REAL / "tonic" / "sample_nmnist.bin"
+    dat = REAL / "expelliarmus" / "dat_sample.dat"
     return {
         "aedat4": (aedat4, {"aedat package (decode)": aedat_decode(aedat4), "faery (decode)": faery(aedat4),
                             "ours (read_event_file)": ours(aedat4)},
@@ -76,6 +87,8 @@ def cases() -> dict:
         "text": (text, {"ours (exact)": ours(text, geometry=(240, 180)), "numpy.loadtxt (float s)": loadtxt(text)},
                  (50_000, 21_147, 3_811_000, 174_156_000)),
         "nmnist_bin": (nmnist, {"ours": ours(nmnist, geometry=(34, 34))}, (4325, 2145, 654_000, 311_175_000)),
+        "dat": (dat, {"ours": ours(dat, geometry=(120, 100)), "expelliarmus": expelliarmus_dat(dat)},
+                (4407, 1671, 0, 99_937_000)),
     }
 
 

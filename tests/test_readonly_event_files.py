@@ -132,3 +132,41 @@ def test_the_dvxplorer_aedat4_reads_to_its_reference_values(tmp_path):
     junk.write_bytes(b"not an aedat file at all")
     with pytest.raises(FormatError, match="not a readable AEDAT 4.0 file"):
         read_event_file(junk)
+
+
+DAT = REAL / "expelliarmus" / "dat_sample.dat"
+
+
+@pytest.mark.skipif(not DAT.is_file(), reason=f"real recordings not found at {REAL}")
+def test_the_ncars_dat_reads_as_expelliarmus_reads_it(tmp_path):
+    from evdnerf_ros.events.codecs._common import TruncatedStreamWarning
+
+    d = read_event_file(DAT, geometry=(120, 100))
+    ev = d.events
+    assert (ev.size, int((ev["p"] > 0).sum()), int(ev["t"][0]), int(ev["t"][-1])) == (4407, 1671, 0, 99_937_000)
+    theirs = np.load(DAT.with_suffix(".npy"))
+    assert np.array_equal(theirs["t"] * 1000, ev["t"]) and np.array_equal(theirs["x"], ev["x"])
+    assert np.array_equal(theirs["y"], ev["y"]) and np.array_equal(np.where(theirs["p"] > 0, 1, -1), ev["p"])
+    cut = tmp_path / "cut.dat"
+    cut.write_bytes(DAT.read_bytes()[:-3])
+    with pytest.warns(TruncatedStreamWarning, match=r"cut\.dat: ends inside an 8-byte DAT event at byte"):
+        assert read_event_file(cut, geometry=(120, 100)).events.size == 4406
+    with pytest.raises(FormatError, match="dangling"):
+        read_event_file(cut, geometry=(120, 100), strict=True)
+
+
+def test_dat_header_geometry_wraps_and_bad_types(tmp_path):
+    def dat(records, head=b"% Version 2\n% Width 640\n% Height 480\n", kind=0x0C, size=8):
+        body = b"".join(np.array([t, x | y << 14 | p << 28], "<u4").tobytes() for t, x, y, p in records)
+        p = tmp_path / "e.dat"
+        p.write_bytes(head + bytes([kind, size]) + body)
+        return p
+
+    p = dat([(4_294_967_000, 1, 2, 1), (100, 639, 479, 0)])       # the 32-bit us clock wraps
+    d = read_event_file(p)
+    assert (d.width, d.height) == (640, 480)
+    assert d.events["t"].tolist() == [4_294_967_000_000, (2**32 + 100) * 1000] and d.events["p"].tolist() == [1, -1]
+    with pytest.raises(FormatError, match="event type 0x01 of 8 bytes is not a DAT CD event"):
+        read_event_file(dat([(0, 1, 2, 1)], kind=0x01))
+    with pytest.raises(InputError, match="Prophesee DAT file gives no sensor size"):
+        read_event_file(dat([(0, 1, 2, 1)], head=b"% Version 2\n"))

@@ -8,6 +8,7 @@
 | `*.txt`                  | text `t x y p` per line, read only (see text.py)       |
 | `*.bin`                  | N-MNIST / N-Caltech101 ATIS, read only (atis_bin.py)   |
 | `*.aedat4`               | AEDAT 4.0 (iniVation DV), read only (aedat4.py)        |
+| `*.dat`                  | Prophesee DAT (CD events), read only (dat.py)          |
 | `*.bag`                  | ROS 1 bag, dvs_msgs/EventArray                          |
 | directory, `*.mcap`, `*.db3` | rosbag2 (MCAP or sqlite3), EventPacket or EventArray |
 
@@ -31,7 +32,8 @@ DEFAULT_TOPIC = EVENTS
 BAG_ENCODINGS = ("evt3", "mono", "array")
 RAW_ENCODINGS = ("evt3", "evt2")
 #: containers read but never written, and what they are called in messages
-READ_ONLY = {"text": "text event file", "atis": "N-MNIST-style .bin file", "aedat4": "AEDAT 4.0 file"}
+READ_ONLY = {"text": "text event file", "atis": "N-MNIST-style .bin file", "aedat4": "AEDAT 4.0 file",
+             "dat": "Prophesee DAT file"}
 
 
 @dataclass
@@ -63,11 +65,13 @@ def container_kind(path) -> str:
         return "atis"
     if suffix == ".aedat4":
         return "aedat4"
+    if suffix == ".dat":
+        return "dat"
     if suffix == ".bag":
         return "rosbag1"
     if suffix in (".mcap", ".db3") or suffix == "" or path.is_dir():
         return "rosbag2"
-    raise InputError(f"{path}: unknown event file type {suffix!r}; use .raw, .npz, .h5, .txt, .bin, .aedat4, .bag, "
+    raise InputError(f"{path}: unknown event file type {suffix!r}; use .raw, .npz, .h5, .txt, .bin, .aedat4, .dat, .bag, "
                      ".mcap, .db3 or a rosbag2 directory")
 
 
@@ -125,6 +129,10 @@ def read_event_file(path, *, topic: str | None = None, need_geometry: bool = Tru
             from .aedat4 import read_aedat4
 
             events, triggers, width, height, _ = read_aedat4(path)
+        elif kind == "dat":
+            from .dat import read_dat
+
+            events, width, height = read_dat(path, geometry=geometry, strict=strict)
         elif kind == "text":
             from .text import read_text
 
