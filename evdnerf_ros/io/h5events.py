@@ -26,7 +26,7 @@ from ..errors import FormatError, InputError
 from ..events.types import (EVENT_DTYPE, TRIGGER_DTYPE, empty_triggers, make_events, make_triggers,
                             validate_events)
 from ..limits import check_memory
-from .guard import h5_close, h5_create, h5_dataset, h5_memory, h5_number, h5_open, h5_reading
+from .guard import h5_close, h5_create, h5_dataset, h5_memory, h5_number, h5_open, h5_reading, h5_text
 
 CHUNK = 1 << 18
 LAYOUT, LAYOUT_VERSION = "evdnerf_ros.events", 1
@@ -103,8 +103,6 @@ def time_unit_name(text: str, what: str) -> str:
 
 def _file_time_unit(f, path) -> str | None:
     """The `time_unit` attribute of events/t, the events group or the file (the first found)."""
-    from .guard import h5_text
-
     for holder in (f["events"]["t"], f["events"], f):
         if "time_unit" in holder.attrs:
             return time_unit_name(h5_text(holder.attrs, "time_unit", path), f"{path}: attribute time_unit")
